@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Installs the Debian packages vlmfuse builds and tests against. Idempotent: it asks apt only
+# for what is missing, so a second run costs a dpkg query and nothing else.
+set -euo pipefail
+pkgs=(pkg-config clang libclang-dev libavcodec-dev libavformat-dev libavutil-dev
+      libswscale-dev libswresample-dev libavfilter-dev libavdevice-dev ffmpeg)
+missing=()
+for p in "${pkgs[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+if [ ${#missing[@]} -gt 0 ]; then
+  SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  echo "setup: installing ${missing[*]}" >&2
+  export DEBIAN_FRONTEND=noninteractive
+  $SUDO apt-get update -qq
+  $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+fi
