@@ -63,6 +63,9 @@ pub struct FusionConfig {
     pub beta0: f64,
     /// Neighbours used for the contextual prior `pi` (`K_prior`).
     pub k_prior: usize,
+    /// Beta prior of the contextual prior `pi` (SPEC: Beta(1,1)).
+    pub prior_alpha: f64,
+    pub prior_beta: f64,
     /// Probability clip for every log (`eps`).
     pub eps: f64,
     /// Cap on the error correlation `rho`.
@@ -106,6 +109,8 @@ impl Default for FusionConfig {
             alpha0: 1.0,
             beta0: 1.0,
             k_prior: 50,
+            prior_alpha: 1.0,
+            prior_beta: 1.0,
             eps: 1e-6,
             rho_max: 0.9,
             corr_window: 500,
@@ -142,6 +147,8 @@ impl FusionConfig {
         pos(self.tau, "tau")?;
         pos(self.alpha0, "alpha0")?;
         pos(self.beta0, "beta0")?;
+        pos(self.prior_alpha, "prior_alpha")?;
+        pos(self.prior_beta, "prior_beta")?;
         pos(self.threshold_step, "threshold_step")?;
         if !(self.eps > 0.0 && self.eps < 0.5) {
             return Err(format!("eps must lie in (0, 0.5), got {}", self.eps));

@@ -342,6 +342,7 @@ impl Engine {
         let p = coalition.len();
         let mut theta_pos = vec![0.5; p * l];
         let mut theta_neg = vec![0.5; p * l];
+        // Empty bank: SPEC fixes theta and pi at 0.5 (no signal), whatever the Beta priors.
         let mut prior = vec![0.5; l];
         if !self.bank.is_empty() {
             // Sums a+, b+, a-, b- per member and label, and kernel mass and positives for pi.
@@ -398,7 +399,8 @@ impl Engine {
                 theta_neg[idx] = an / (an + bn);
             }
             for k in 0..l {
-                prior[k] = (1.0 + pi_pos[k]) / (2.0 + pi_mass);
+                prior[k] = (cfg.prior_alpha + pi_pos[k])
+                    / (cfg.prior_alpha + cfg.prior_beta + pi_mass);
             }
         }
         let mut rho = vec![0.0; p * p * l];
