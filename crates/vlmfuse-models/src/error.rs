@@ -1,0 +1,124 @@
+//! One error type for every backend, so the HTTP layer can map failures to statuses in one place
+//! and `/readyz` can say why a backend is not ready.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+/// Why a model backend failed.
+#[derive(Debug, thiserror::Error)]
+pub enum ModelError {
+    /// A weight/config/tokenizer file is not where we looked. Carries every place searched,
+    /// because with an offline cache the fix is nearly always "put the file there".
+    #[error("missing model file `{file}`; looked in: {}", fmt_paths(.searched))]
+    MissingWeights {
+        file: String,
+        searched: Vec<PathBuf>,
+    },
+
+    /// A file exists but cannot be used (truncated safetensors, wrong tensor shapes, ...).
+    #[error("unusable weights in {path}: {reason}")]
+    BadWeights { path: PathBuf, reason: String },
+
+    /// The model's config (or ours) is malformed or asks for something unsupported.
+    #[error("bad config: {0}")]
+    BadConfig(String),
+
+    /// The requested device does not exist or was not compiled in.
+    #[error("device: {0}")]
+    Device(String),
+
+    /// The caller handed us something we cannot process (no frames, wrong buffer size, ...).
+    #[error("invalid input: {0}")]
+    InvalidInput(String),
+
+    /// An error from candle during a forward pass or tensor manipulation.
+    #[error("candle: {0}")]
+    Candle(#[from] candle_core::Error),
+
+    /// Local I/O (reading a clip to upload, a config file).
+    #[error("i/o on {path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+
+    /// A remote server answered with an error, or could not be reached, after all retries.
+    #[error("remote {endpoint}: {message} (status {}, after {attempts} attempt(s))",
+        .status.map(|s| s.to_string()).unwrap_or_else(|| "none".into()))]
+    Remote {
+        endpoint: String,
+        status: Option<u16>,
+        attempts: u32,
+        message: String,
+    },
+
+    /// A remote answered 2xx with a body we cannot interpret.
+    #[error("remote {endpoint} sent an unexpected response: {message}")]
+    BadResponse { endpoint: String, message: String },
+
+    /// Something took longer than it was allowed to.
+    #[error("{what} timed out after {:.3}s", .after.as_secs_f64())]
+    Timeout { what: String, after: Duration },
+}
+
+fn fmt_paths(p: &[PathBuf]) -> String {
+    if p.is_empty() {
+        return "(nowhere)".into();
+    }
+    p.iter()
+        .map(|p| p.display().to_string())
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+impl ModelError {
+    /// A short stable tag for logs, metrics labels and API error bodies, where the full message
+    /// (paths, URLs) would explode cardinality.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            ModelError::MissingWeights { .. } => "missing_weights",
+            ModelError::BadWeights { .. } => "bad_weights",
+            ModelError::BadConfig(_) => "bad_config",
+            ModelError::Device(_) => "device",
+            ModelError::InvalidInput(_) => "invalid_input",
+            ModelError::Candle(_) => "candle",
+            ModelError::Io { .. } => "io",
+            ModelError::Remote { .. } => "remote",
+            ModelError::BadResponse { .. } => "bad_response",
+            ModelError::Timeout { .. } => "timeout",
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn missing_weights_message_names_file_and_places() {
+        let e = ModelError::MissingWeights {
+            file: "model.safetensors".into(),
+            searched: vec!["/a".into(), "/b/snap".into()],
+        };
+        let s = e.to_string();
+        assert!(
+            s.contains("model.safetensors") && s.contains("/a") && s.contains("/b/snap"),
+            "{s}"
+        );
+        assert_eq!(e.kind(), "missing_weights");
+    }
+
+    #[test]
+    fn remote_message_has_status_and_attempts() {
+        let e = ModelError::Remote {
+            endpoint: "http://x/v1/chat/completions".into(),
+            status: Some(503),
+            attempts: 3,
+            message: "overloaded".into(),
+        };
+        let s = e.to_string();
+        assert!(s.contains("503") && s.contains("3 attempt"), "{s}");
+        assert_eq!(e.kind(), "remote");
+    }
+}

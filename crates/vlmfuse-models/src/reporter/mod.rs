@@ -1,0 +1,132 @@
+//! Reporters: the VLMs whose free-text reports the fusion engine combines. A round runs them all
+//! on one clip; a slow or broken reporter must cost at most its timeout and never sink the round.
+
+mod openai;
+
+pub use openai::{
+    shared_http_client, FrameFormat, OpenAiMode, OpenAiReporter, OpenAiReporterConfig,
+};
+
+use std::panic::AssertUnwindSafe;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+
+use futures::future::BoxFuture;
+use futures::FutureExt;
+use serde::{Deserialize, Serialize};
+
+use crate::{Frame, ModelError};
+
+/// The paper's three-step chain-of-thought prompt. Steps are labelled so the labeler can find
+/// the manoeuvre recommendation without a second model call when the VLM follows the format.
+pub const DEFAULT_PROMPT: &str = "\
+You are given a dashcam clip recorded from the ego vehicle. Think step by step and answer in three steps.
+Step 1 - Scene: describe the driving scene: road type and layout, the traffic participants \
+(vehicles, pedestrians, cyclists) and what they are doing, traffic lights and signs, weather, \
+lighting, road surface, and any hazard.
+Step 2 - Manoeuvres: recommend the manoeuvre(s) the ego vehicle should perform next \
+(for example keep lane, accelerate, slow down, stop, yield, change lane left or right, \
+turn left or right, overtake, pull over).
+Step 3 - Rationale: explain why these manoeuvres are appropriate, referring to the elements of \
+the scene from Step 1.
+Answer with the headings \"Scene:\", \"Manoeuvres:\" and \"Rationale:\".";
+
+/// What the media layer knows about a clip; sent to no model by default, but kept with the
+/// input so reporters can adapt (e.g. tell a server the sampling fps).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct ClipMeta {
+    pub clip_id: Option<String>,
+    pub duration_s: Option<f64>,
+    pub fps: Option<f64>,
+    pub width: Option<u32>,
+    pub height: Option<u32>,
+}
+
+/// One clip as every reporter sees it. Frames are behind an `Arc` so reporters can move them to
+/// blocking threads (encoding, forward passes) without copying.
+#[derive(Debug, Clone)]
+pub struct ClipInput {
+    /// The clip file on local disk (for reporters that send the whole video).
+    pub path: PathBuf,
+    /// Frames sampled by the media layer, in presentation order.
+    pub frames: Arc<[Frame]>,
+    pub meta: ClipMeta,
+}
+
+/// A reporter's answer.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ReporterOutput {
+    pub text: String,
+    /// Wall time of the whole `run`, retries included: what the round actually waited.
+    pub latency_ms: f64,
+    /// The model that answered, as the backend names it (a server may resolve an alias).
+    pub model: String,
+}
+
+/// A VLM that describes a clip. Returns a boxed future so reporters of different kinds can sit
+/// together in one `Vec<Arc<dyn Reporter>>`.
+///
+/// Implementations must not block the executor: `run_all` polls every reporter on one task, so a
+/// blocking forward pass inside the future would stall the others. Use `spawn_blocking`.
+pub trait Reporter: Send + Sync {
+    fn name(&self) -> &str;
+    fn run<'a>(&'a self, clip: &'a ClipInput) -> BoxFuture<'a, Result<ReporterOutput, ModelError>>;
+}
+
+/// Why a reporter produced no output in a round.
+#[derive(Debug, thiserror::Error)]
+pub enum ReporterFailure {
+    #[error("timed out after {:.3}s", .0.as_secs_f64())]
+    TimedOut(Duration),
+    #[error(transparent)]
+    Failed(#[from] ModelError),
+    #[error("reporter panicked: {0}")]
+    Panicked(String),
+}
+
+impl ReporterFailure {
+    /// Short tag for metrics and API bodies.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            ReporterFailure::TimedOut(_) => "timeout",
+            ReporterFailure::Failed(e) => e.kind(),
+            ReporterFailure::Panicked(_) => "panic",
+        }
+    }
+}
+
+/// Runs all reporters concurrently on `clip`, each under its own timeout. Never fails as a
+/// whole: each entry is `(reporter name, outcome)`, in the order of `reporters`. A timed-out
+/// reporter's future is dropped, which cancels its in-flight HTTP request.
+pub async fn run_all(
+    reporters: &[Arc<dyn Reporter>],
+    clip: &ClipInput,
+    per_reporter_timeout: Duration,
+) -> Vec<(String, Result<ReporterOutput, ReporterFailure>)> {
+    let futs = reporters.iter().map(|r| async move {
+        let name = r.name().to_string();
+        let fut = AssertUnwindSafe(r.run(clip)).catch_unwind();
+        let res = match tokio::time::timeout(per_reporter_timeout, fut).await {
+            Err(_) => Err(ReporterFailure::TimedOut(per_reporter_timeout)),
+            Ok(Err(panic)) => Err(ReporterFailure::Panicked(panic_message(panic.as_ref()))),
+            Ok(Ok(Err(e))) => Err(ReporterFailure::Failed(e)),
+            Ok(Ok(Ok(o))) => Ok(o),
+        };
+        if let Err(e) = &res {
+            tracing::warn!(reporter = %name, kind = e.kind(), error = %e, "reporter failed");
+        }
+        (name, res)
+    });
+    futures::future::join_all(futs).await
+}
+
+fn panic_message(p: &(dyn std::any::Any + Send)) -> String {
+    if let Some(s) = p.downcast_ref::<&str>() {
+        s.to_string()
+    } else if let Some(s) = p.downcast_ref::<String>() {
+        s.clone()
+    } else {
+        "non-string panic payload".into()
+    }
+}

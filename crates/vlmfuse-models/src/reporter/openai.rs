@@ -1,0 +1,557 @@
+//! Reporter for any OpenAI-compatible `/v1/chat/completions` server (vLLM, SGLang, llama.cpp,
+//! hosted APIs). The clip goes either as one `video_url` part (servers with native video input,
+//! e.g. vLLM + Qwen-VL) or as sampled frames in `image_url` parts (image-only VLMs).
+
+use std::path::Path;
+use std::sync::{Arc, OnceLock};
+use std::time::{Duration, Instant};
+
+use base64::Engine as _;
+use futures::future::BoxFuture;
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+
+use super::{ClipInput, Reporter, ReporterOutput, DEFAULT_PROMPT};
+use crate::{Frame, ModelError};
+
+/// How the clip is shown to the model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OpenAiMode {
+    /// One `video_url` part: a base64 `data:` URL of the file, or `video_url_template`.
+    VideoUrl,
+    /// One `image_url` part per sampled frame (base64 data URLs).
+    Frames,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FrameFormat {
+    Jpeg,
+    Png,
+}
+
+/// Configuration of one remote reporter; every field has a default except `model` (and
+/// `base_url` for anything but a local vLLM on port 8000).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct OpenAiReporterConfig {
+    /// Name in rounds/metrics; defaults to `model`.
+    pub name: Option<String>,
+    /// `http://host:port` or `http://host:port/v1`.
+    pub base_url: String,
+    pub model: String,
+    /// Name of the environment variable holding the API key (never the key itself, so configs
+    /// can be committed). Unset means no `Authorization` header.
+    pub api_key_env: Option<String>,
+    pub mode: OpenAiMode,
+    /// For `video_url` mode: send this URL instead of inlining the file, with `{path}`
+    /// (absolute path) and `{file_name}` substituted, e.g. `file://{path}` for a vLLM started
+    /// with `--allowed-local-media-path`, or `http://media/{file_name}`. Inlining a large clip
+    /// costs 4/3 of its size in request body.
+    pub video_url_template: Option<String>,
+    pub frame_format: FrameFormat,
+    pub jpeg_quality: u8,
+    pub prompt: String,
+    pub system_prompt: Option<String>,
+    pub max_tokens: u32,
+    pub temperature: f32,
+    /// Per HTTP attempt.
+    pub timeout_s: f64,
+    /// Extra attempts after the first, on 408/429/5xx, connection errors and attempt timeouts.
+    pub retries: u32,
+    /// Backoff before retry k (1-based) is `backoff_initial_ms * 2^(k-1)`, capped at
+    /// `backoff_max_ms`. A `Retry-After` (seconds) replaces it, capped the same way so one
+    /// server cannot stall a round past its own timeout.
+    pub backoff_initial_ms: u64,
+    pub backoff_max_ms: u64,
+    /// Merged into the request body top level (e.g. vLLM's `mm_processor_kwargs`).
+    pub extra_body: Option<serde_json::Map<String, Value>>,
+}
+
+impl Default for OpenAiReporterConfig {
+    fn default() -> Self {
+        Self {
+            name: None,
+            base_url: "http://127.0.0.1:8000".into(),
+            model: String::new(),
+            api_key_env: None,
+            mode: OpenAiMode::VideoUrl,
+            video_url_template: None,
+            frame_format: FrameFormat::Jpeg,
+            jpeg_quality: 90,
+            prompt: DEFAULT_PROMPT.into(),
+            system_prompt: None,
+            max_tokens: 512,
+            temperature: 0.0,
+            timeout_s: 120.0,
+            retries: 2,
+            backoff_initial_ms: 500,
+            backoff_max_ms: 8_000,
+            extra_body: None,
+        }
+    }
+}
+
+/// One connection pool for every remote backend in the process: reporters and labelers often
+/// talk to the same vLLM, and per-reporter clients would each hold their own idle sockets.
+pub fn shared_http_client() -> reqwest::Client {
+    static CLIENT: OnceLock<reqwest::Client> = OnceLock::new();
+    CLIENT
+        .get_or_init(|| {
+            reqwest::Client::builder()
+                .connect_timeout(Duration::from_secs(10))
+                .pool_idle_timeout(Duration::from_secs(90))
+                .build()
+                .expect("reqwest client with default settings")
+        })
+        .clone()
+}
+
+pub struct OpenAiReporter {
+    name: String,
+    cfg: OpenAiReporterConfig,
+    endpoint: String,
+    api_key: Option<String>,
+    client: reqwest::Client,
+}
+
+impl OpenAiReporter {
+    /// Reads the API key now, so a missing secret fails at startup rather than on the first clip.
+    pub fn new(cfg: OpenAiReporterConfig) -> Result<Self, ModelError> {
+        Self::with_client(cfg, shared_http_client())
+    }
+
+    pub fn with_client(
+        cfg: OpenAiReporterConfig,
+        client: reqwest::Client,
+    ) -> Result<Self, ModelError> {
+        if cfg.model.trim().is_empty() {
+            return Err(ModelError::BadConfig(
+                "openai reporter: `model` is empty".into(),
+            ));
+        }
+        if !(cfg.timeout_s.is_finite() && cfg.timeout_s > 0.0) {
+            return Err(ModelError::BadConfig(format!(
+                "openai reporter {}: timeout_s must be > 0",
+                cfg.model
+            )));
+        }
+        let api_key = match &cfg.api_key_env {
+            None => None,
+            Some(var) => match std::env::var(var) {
+                Ok(k) if !k.trim().is_empty() => Some(k.trim().to_string()),
+                _ => {
+                    return Err(ModelError::BadConfig(format!(
+                        "openai reporter {}: environment variable `{var}` (api_key_env) is not set",
+                        cfg.model
+                    )))
+                }
+            },
+        };
+        Ok(Self {
+            name: cfg.name.clone().unwrap_or_else(|| cfg.model.clone()),
+            endpoint: chat_endpoint(&cfg.base_url),
+            api_key,
+            client,
+            cfg,
+        })
+    }
+
+    pub fn endpoint(&self) -> &str {
+        &self.endpoint
+    }
+
+    /// The JSON request for `clip`. Encoding (base64 of the video, JPEG/PNG of frames) runs on
+    /// a blocking thread: it is tens of milliseconds of CPU per clip.
+    pub async fn request_body(&self, clip: &ClipInput) -> Result<Value, ModelError> {
+        let media_parts = match self.cfg.mode {
+            OpenAiMode::VideoUrl => vec![json!({
+                "type": "video_url",
+                "video_url": { "url": self.video_url(&clip.path).await? }
+            })],
+            OpenAiMode::Frames => {
+                if clip.frames.is_empty() {
+                    return Err(ModelError::InvalidInput(
+                        "frames mode needs sampled frames; the clip has none".into(),
+                    ));
+                }
+                let frames = Arc::clone(&clip.frames);
+                let (fmt, q) = (self.cfg.frame_format, self.cfg.jpeg_quality);
+                let urls = tokio::task::spawn_blocking(move || {
+                    frames
+                        .iter()
+                        .map(|f| frame_data_url(f, fmt, q))
+                        .collect::<Result<Vec<_>, _>>()
+                })
+                .await
+                .map_err(|e| ModelError::InvalidInput(format!("frame encoding task: {e}")))??;
+                urls.into_iter()
+                    .map(|u| json!({ "type": "image_url", "image_url": { "url": u } }))
+                    .collect()
+            }
+        };
+        let mut content = media_parts;
+        content.push(json!({ "type": "text", "text": self.cfg.prompt }));
+        let mut messages = Vec::new();
+        if let Some(sys) = &self.cfg.system_prompt {
+            messages.push(json!({ "role": "system", "content": sys }));
+        }
+        messages.push(json!({ "role": "user", "content": content }));
+        let mut body = json!({
+            "model": self.cfg.model,
+            "messages": messages,
+            "max_tokens": self.cfg.max_tokens,
+            "temperature": self.cfg.temperature,
+            "stream": false,
+        });
+        if let (Some(extra), Some(obj)) = (&self.cfg.extra_body, body.as_object_mut()) {
+            for (k, v) in extra {
+                obj.insert(k.clone(), v.clone());
+            }
+        }
+        Ok(body)
+    }
+
+    async fn video_url(&self, path: &Path) -> Result<String, ModelError> {
+        if let Some(t) = &self.cfg.video_url_template {
+            let abs = std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf());
+            let file_name = path
+                .file_name()
+                .map(|f| f.to_string_lossy())
+                .unwrap_or_default();
+            return Ok(t
+                .replace("{path}", &abs.to_string_lossy())
+                .replace("{file_name}", &file_name));
+        }
+        let bytes = tokio::fs::read(path)
+            .await
+            .map_err(|source| ModelError::Io {
+                path: path.to_path_buf(),
+                source,
+            })?;
+        let mime = video_mime(path);
+        tokio::task::spawn_blocking(move || {
+            format!(
+                "data:{mime};base64,{}",
+                base64::engine::general_purpose::STANDARD.encode(bytes)
+            )
+        })
+        .await
+        .map_err(|e| ModelError::InvalidInput(format!("video encoding task: {e}")))
+    }
+
+    async fn run_inner(&self, clip: &ClipInput) -> Result<ReporterOutput, ModelError> {
+        let started = Instant::now();
+        let body = serde_json::to_vec(&self.request_body(clip).await?)
+            .map_err(|e| ModelError::InvalidInput(format!("request serialisation: {e}")))?;
+        let timeout = Duration::from_secs_f64(self.cfg.timeout_s);
+        let mut attempt: u32 = 0;
+        loop {
+            attempt += 1;
+            let mut req = self
+                .client
+                .post(&self.endpoint)
+                .timeout(timeout)
+                .header(reqwest::header::CONTENT_TYPE, "application/json")
+                .body(body.clone());
+            if let Some(k) = &self.api_key {
+                req = req.bearer_auth(k);
+            }
+            let can_retry = attempt <= self.cfg.retries;
+            let (err, retry_after) = match req.send().await {
+                Ok(resp) if resp.status().is_success() => {
+                    let v: Value = resp.json().await.map_err(|e| ModelError::BadResponse {
+                        endpoint: self.endpoint.clone(),
+                        message: format!("body is not JSON: {e}"),
+                    })?;
+                    let (text, model) =
+                        parse_chat_response(&v).map_err(|m| ModelError::BadResponse {
+                            endpoint: self.endpoint.clone(),
+                            message: m,
+                        })?;
+                    return Ok(ReporterOutput {
+                        text,
+                        latency_ms: started.elapsed().as_secs_f64() * 1e3,
+                        model: model.unwrap_or_else(|| self.cfg.model.clone()),
+                    });
+                }
+                Ok(resp) => {
+                    let status = resp.status().as_u16();
+                    let retry_after = resp
+                        .headers()
+                        .get(reqwest::header::RETRY_AFTER)
+                        .and_then(|h| h.to_str().ok())
+                        .and_then(|s| s.trim().parse::<f64>().ok())
+                        .filter(|s| s.is_finite() && *s >= 0.0)
+                        .map(Duration::from_secs_f64);
+                    let mut msg = resp.text().await.unwrap_or_default();
+                    truncate(&mut msg, 500);
+                    let err = ModelError::Remote {
+                        endpoint: self.endpoint.clone(),
+                        status: Some(status),
+                        attempts: attempt,
+                        message: msg,
+                    };
+                    if !(status == 408 || status == 429 || status >= 500) {
+                        return Err(err);
+                    }
+                    (err, retry_after)
+                }
+                Err(e) if e.is_timeout() => (
+                    ModelError::Timeout {
+                        what: format!("POST {} (attempt {attempt})", self.endpoint),
+                        after: timeout,
+                    },
+                    None,
+                ),
+                Err(e) if e.is_connect() || e.is_request() => (
+                    ModelError::Remote {
+                        endpoint: self.endpoint.clone(),
+                        status: None,
+                        attempts: attempt,
+                        message: error_chain(&e),
+                    },
+                    None,
+                ),
+                Err(e) => {
+                    return Err(ModelError::Remote {
+                        endpoint: self.endpoint.clone(),
+                        status: None,
+                        attempts: attempt,
+                        message: error_chain(&e),
+                    })
+                }
+            };
+            if !can_retry {
+                return Err(err);
+            }
+            let delay = self.backoff(attempt, retry_after);
+            tracing::debug!(reporter = %self.name, attempt, ?delay, error = %err, "retrying");
+            tokio::time::sleep(delay).await;
+        }
+    }
+
+    fn backoff(&self, attempt: u32, retry_after: Option<Duration>) -> Duration {
+        let max = Duration::from_millis(self.cfg.backoff_max_ms);
+        let exp = Duration::from_millis(
+            self.cfg
+                .backoff_initial_ms
+                .saturating_mul(1u64 << (attempt - 1).min(30)),
+        );
+        retry_after.unwrap_or(exp).min(max)
+    }
+}
+
+impl Reporter for OpenAiReporter {
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn run<'a>(&'a self, clip: &'a ClipInput) -> BoxFuture<'a, Result<ReporterOutput, ModelError>> {
+        Box::pin(self.run_inner(clip))
+    }
+}
+
+fn chat_endpoint(base: &str) -> String {
+    let b = base.trim_end_matches('/');
+    if b.ends_with("/chat/completions") {
+        b.to_string()
+    } else if b.ends_with("/v1") {
+        format!("{b}/chat/completions")
+    } else {
+        format!("{b}/v1/chat/completions")
+    }
+}
+
+fn video_mime(path: &Path) -> &'static str {
+    match path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(|e| e.to_ascii_lowercase())
+        .as_deref()
+    {
+        Some("webm") => "video/webm",
+        Some("mov") => "video/quicktime",
+        Some("mkv") => "video/x-matroska",
+        Some("avi") => "video/x-msvideo",
+        _ => "video/mp4",
+    }
+}
+
+fn frame_data_url(f: &Frame, fmt: FrameFormat, jpeg_quality: u8) -> Result<String, ModelError> {
+    use image::ImageEncoder as _;
+    f.as_ref().validate()?;
+    let mut buf = Vec::new();
+    let (mime, res) = match fmt {
+        FrameFormat::Jpeg => (
+            "image/jpeg",
+            image::codecs::jpeg::JpegEncoder::new_with_quality(
+                &mut buf,
+                jpeg_quality.clamp(1, 100),
+            )
+            .write_image(&f.rgb, f.width, f.height, image::ExtendedColorType::Rgb8),
+        ),
+        FrameFormat::Png => (
+            "image/png",
+            image::codecs::png::PngEncoder::new(&mut buf).write_image(
+                &f.rgb,
+                f.width,
+                f.height,
+                image::ExtendedColorType::Rgb8,
+            ),
+        ),
+    };
+    res.map_err(|e| ModelError::InvalidInput(format!("frame encoding: {e}")))?;
+    Ok(format!(
+        "data:{mime};base64,{}",
+        base64::engine::general_purpose::STANDARD.encode(buf)
+    ))
+}
+
+/// `choices[0].message.content` as a string (also accepting the list-of-parts form some servers
+/// return), plus the answering model's name.
+fn parse_chat_response(v: &Value) -> Result<(String, Option<String>), String> {
+    if let Some(err) = v.get("error") {
+        return Err(format!("error object in 2xx response: {err}"));
+    }
+    let content = v
+        .pointer("/choices/0/message/content")
+        .ok_or_else(|| "no choices[0].message.content".to_string())?;
+    let text = match content {
+        Value::String(s) => s.clone(),
+        Value::Array(parts) => parts
+            .iter()
+            .filter_map(|p| p.get("text").and_then(Value::as_str))
+            .collect::<Vec<_>>()
+            .join(""),
+        Value::Null => String::new(),
+        other => return Err(format!("content of unexpected type: {other}")),
+    };
+    if text.trim().is_empty() {
+        let reason = v
+            .pointer("/choices/0/finish_reason")
+            .and_then(Value::as_str)
+            .unwrap_or("?");
+        return Err(format!("empty completion (finish_reason {reason})"));
+    }
+    let model = v.get("model").and_then(Value::as_str).map(str::to_string);
+    Ok((text, model))
+}
+
+fn truncate(s: &mut String, max: usize) {
+    if s.len() > max {
+        let mut cut = max;
+        while !s.is_char_boundary(cut) {
+            cut -= 1;
+        }
+        s.truncate(cut);
+        s.push('…');
+    }
+}
+
+fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut s = e.to_string();
+    let mut src = e.source();
+    while let Some(c) = src {
+        s.push_str(": ");
+        s.push_str(&c.to_string());
+        src = c.source();
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn endpoint_forms() {
+        assert_eq!(
+            chat_endpoint("http://h:8000"),
+            "http://h:8000/v1/chat/completions"
+        );
+        assert_eq!(
+            chat_endpoint("http://h:8000/v1/"),
+            "http://h:8000/v1/chat/completions"
+        );
+        assert_eq!(
+            chat_endpoint("http://h/v1/chat/completions"),
+            "http://h/v1/chat/completions"
+        );
+    }
+
+    #[test]
+    fn parse_response_forms() {
+        let v = json!({"model":"m","choices":[{"message":{"content":"hi"}}]});
+        assert_eq!(
+            parse_chat_response(&v).unwrap(),
+            ("hi".into(), Some("m".into()))
+        );
+        let v = json!({"choices":[{"message":{"content":[{"type":"text","text":"a"},{"type":"text","text":"b"}]}}]});
+        assert_eq!(parse_chat_response(&v).unwrap().0, "ab");
+        let v = json!({"choices":[{"message":{"content":null},"finish_reason":"length"}]});
+        assert!(parse_chat_response(&v).unwrap_err().contains("length"));
+        assert!(parse_chat_response(&json!({"choices":[]})).is_err());
+    }
+
+    #[test]
+    fn backoff_doubles_and_caps_and_honours_retry_after() {
+        let r = OpenAiReporter::new(OpenAiReporterConfig {
+            model: "m".into(),
+            backoff_initial_ms: 100,
+            backoff_max_ms: 1000,
+            ..Default::default()
+        })
+        .unwrap();
+        let ms = |d: Duration| d.as_millis();
+        assert_eq!(ms(r.backoff(1, None)), 100);
+        assert_eq!(ms(r.backoff(2, None)), 200);
+        assert_eq!(ms(r.backoff(3, None)), 400);
+        assert_eq!(ms(r.backoff(10, None)), 1000);
+        assert_eq!(ms(r.backoff(1, Some(Duration::from_millis(700)))), 700);
+        assert_eq!(ms(r.backoff(1, Some(Duration::from_secs(60)))), 1000);
+    }
+
+    #[test]
+    fn config_errors_are_clear() {
+        let e = OpenAiReporter::new(OpenAiReporterConfig::default())
+            .err()
+            .unwrap();
+        assert!(e.to_string().contains("model"), "{e}");
+        let e = OpenAiReporter::new(OpenAiReporterConfig {
+            model: "m".into(),
+            api_key_env: Some("VLMFUSE_TEST_SURELY_UNSET_KEY".into()),
+            ..Default::default()
+        })
+        .err()
+        .unwrap();
+        assert!(
+            e.to_string().contains("VLMFUSE_TEST_SURELY_UNSET_KEY"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn frames_encode_to_decodable_images() {
+        let f = Frame {
+            width: 4,
+            height: 2,
+            rgb: (0..24).map(|i| (i * 10) as u8).collect(),
+            t_s: 0.0,
+        };
+        let png = frame_data_url(&f, FrameFormat::Png, 90).unwrap();
+        let b64 = png.strip_prefix("data:image/png;base64,").unwrap();
+        let bytes = base64::engine::general_purpose::STANDARD
+            .decode(b64)
+            .unwrap();
+        let img = image::load_from_memory(&bytes).unwrap().to_rgb8();
+        assert_eq!(img.into_raw(), f.rgb, "PNG must be lossless");
+        let jpg = frame_data_url(&f, FrameFormat::Jpeg, 90).unwrap();
+        let b64 = jpg.strip_prefix("data:image/jpeg;base64,").unwrap();
+        let bytes = base64::engine::general_purpose::STANDARD
+            .decode(b64)
+            .unwrap();
+        assert_eq!(&bytes[..2], &[0xFF, 0xD8], "JPEG SOI marker");
+    }
+}

@@ -1,0 +1,415 @@
+//! Where model files come from. Deployments here have no route to the Hub, so the Hub path is
+//! offline-only: it reads a cache that `huggingface-cli download` (or a copied volume) filled.
+
+use std::path::{Path, PathBuf};
+
+use candle_core::{DType, Device};
+use candle_nn::VarBuilder;
+use serde::{Deserialize, Serialize};
+
+use crate::ModelError;
+
+/// A model's file set: a plain directory, or a Hub repo at a revision inside the local HF cache.
+///
+/// In TOML: `{ path = "/models/clip" }` or `{ hub = "openai/clip-vit-base-patch32",
+/// revision = "main" }` (`cache_dir` optional; otherwise the HF environment variables decide).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum WeightSource {
+    Local {
+        path: PathBuf,
+    },
+    Hub {
+        hub: String,
+        #[serde(default = "main_rev")]
+        revision: String,
+        #[serde(default)]
+        cache_dir: Option<PathBuf>,
+    },
+}
+
+fn main_rev() -> String {
+    "main".into()
+}
+
+impl WeightSource {
+    pub fn local(path: impl Into<PathBuf>) -> Self {
+        WeightSource::Local { path: path.into() }
+    }
+
+    pub fn hub(repo: impl Into<String>, revision: impl Into<String>) -> Self {
+        WeightSource::Hub {
+            hub: repo.into(),
+            revision: revision.into(),
+            cache_dir: None,
+        }
+    }
+
+    /// Pins the cache root, for tests and for deployments that mount the cache somewhere the
+    /// environment does not describe.
+    pub fn with_cache_dir(self, dir: impl Into<PathBuf>) -> Self {
+        match self {
+            WeightSource::Hub { hub, revision, .. } => WeightSource::Hub {
+                hub,
+                revision,
+                cache_dir: Some(dir.into()),
+            },
+            other => other,
+        }
+    }
+
+    /// Accepts the short CLI form: `hf:org/name[@revision]`, anything else is a directory.
+    pub fn parse(s: &str) -> Self {
+        match s.strip_prefix("hf:").or_else(|| s.strip_prefix("hf://")) {
+            Some(rest) => {
+                let (repo, rev) = rest.split_once('@').unwrap_or((rest, "main"));
+                WeightSource::hub(repo, rev)
+            }
+            None => WeightSource::local(s),
+        }
+    }
+
+    /// Human-readable origin for logs and `/readyz`.
+    pub fn describe(&self) -> String {
+        match self {
+            WeightSource::Local { path } => path.display().to_string(),
+            WeightSource::Hub { hub, revision, .. } => format!("hf:{hub}@{revision}"),
+        }
+    }
+
+    /// Path of `file`, or [`ModelError::MissingWeights`] naming every place looked at.
+    pub fn resolve(&self, file: &str) -> Result<PathBuf, ModelError> {
+        match self.try_resolve(file)? {
+            Ok(p) => Ok(p),
+            Err(searched) => Err(ModelError::MissingWeights {
+                file: file.to_string(),
+                searched,
+            }),
+        }
+    }
+
+    /// Like [`resolve`](Self::resolve) for files that may legitimately be absent
+    /// (`model.safetensors.index.json`, `preprocessor_config.json`).
+    pub fn resolve_optional(&self, file: &str) -> Result<Option<PathBuf>, ModelError> {
+        Ok(self.try_resolve(file)?.ok())
+    }
+
+    /// Outer error: the source itself is unusable (unknown revision, no such directory).
+    /// Inner error: the source is fine but lacks `file`; carries the places searched.
+    fn try_resolve(&self, file: &str) -> Result<Result<PathBuf, Vec<PathBuf>>, ModelError> {
+        match self {
+            WeightSource::Local { path } => {
+                if !path.is_dir() {
+                    return Err(ModelError::MissingWeights {
+                        file: file.to_string(),
+                        searched: vec![path.clone()],
+                    });
+                }
+                let p = path.join(file);
+                Ok(if p.is_file() { Ok(p) } else { Err(vec![p]) })
+            }
+            WeightSource::Hub {
+                hub,
+                revision,
+                cache_dir,
+            } => {
+                let root = match cache_dir {
+                    Some(d) => d.clone(),
+                    None => hub_cache_dir(),
+                };
+                let snapshot = resolve_snapshot(&root, hub, revision)?;
+                let p = snapshot.join(file);
+                // Snapshot entries are symlinks into blobs/; `is_file` follows them, so a
+                // dangling link (blob deleted) counts as missing.
+                Ok(if p.is_file() { Ok(p) } else { Err(vec![p]) })
+            }
+        }
+    }
+
+    /// The safetensors files of the model: `model.safetensors`, or the shards listed by
+    /// `model.safetensors.index.json`.
+    pub fn safetensors_files(&self) -> Result<Vec<PathBuf>, ModelError> {
+        if let Some(index) = self.resolve_optional("model.safetensors.index.json")? {
+            let text = read_to_string(&index)?;
+            let v: serde_json::Value =
+                serde_json::from_str(&text).map_err(|e| ModelError::BadWeights {
+                    path: index.clone(),
+                    reason: e.to_string(),
+                })?;
+            let map = v
+                .get("weight_map")
+                .and_then(|m| m.as_object())
+                .ok_or_else(|| ModelError::BadWeights {
+                    path: index.clone(),
+                    reason: "no `weight_map` object".into(),
+                })?;
+            let mut shards: Vec<String> = map
+                .values()
+                .filter_map(|s| s.as_str().map(str::to_string))
+                .collect();
+            shards.sort();
+            shards.dedup();
+            return shards.iter().map(|s| self.resolve(s)).collect();
+        }
+        Ok(vec![self.resolve("model.safetensors")?])
+    }
+
+    /// Reads and parses a JSON file of the model (config.json etc.).
+    pub fn read_json<T: serde::de::DeserializeOwned>(&self, file: &str) -> Result<T, ModelError> {
+        let p = self.resolve(file)?;
+        let text = read_to_string(&p)?;
+        serde_json::from_str(&text)
+            .map_err(|e| ModelError::BadConfig(format!("{}: {e}", p.display())))
+    }
+}
+
+fn read_to_string(p: &Path) -> Result<String, ModelError> {
+    std::fs::read_to_string(p).map_err(|source| ModelError::Io {
+        path: p.to_path_buf(),
+        source,
+    })
+}
+
+/// The HF hub cache root from the process environment.
+pub fn hub_cache_dir() -> PathBuf {
+    hub_cache_dir_from(|k| std::env::var(k).ok())
+}
+
+/// Same rules as `huggingface_hub`: `HF_HUB_CACHE`, else `$HF_HOME/hub`, else
+/// `$XDG_CACHE_HOME/huggingface/hub`, else `~/.cache/huggingface/hub`. Takes the lookup as a
+/// function so tests need not mutate the (process-global, racy) environment. hf-hub 0.5's own
+/// `Cache::from_env` ignores `HF_HUB_CACHE` and `XDG_CACHE_HOME`, hence this.
+pub fn hub_cache_dir_from(env: impl Fn(&str) -> Option<String>) -> PathBuf {
+    let non_empty = |k: &str| env(k).filter(|v| !v.is_empty());
+    if let Some(d) = non_empty("HF_HUB_CACHE").or_else(|| non_empty("HUGGINGFACE_HUB_CACHE")) {
+        return PathBuf::from(d);
+    }
+    if let Some(h) = non_empty("HF_HOME") {
+        return PathBuf::from(h).join("hub");
+    }
+    if let Some(x) = non_empty("XDG_CACHE_HOME") {
+        return PathBuf::from(x).join("huggingface").join("hub");
+    }
+    let home = non_empty("HOME").unwrap_or_else(|| ".".into());
+    PathBuf::from(home)
+        .join(".cache")
+        .join("huggingface")
+        .join("hub")
+}
+
+/// `<root>/models--org--name/snapshots/<commit>` for a branch/tag (via `refs/<rev>`) or a commit
+/// hash (directly). hf-hub 0.5's `CacheRepo::get` only handles the former and does not trim the
+/// ref file, so resolution is done here with its layout helpers.
+fn resolve_snapshot(root: &Path, repo_id: &str, revision: &str) -> Result<PathBuf, ModelError> {
+    let repo = hf_hub::Repo::with_revision(
+        repo_id.to_string(),
+        hf_hub::RepoType::Model,
+        revision.to_string(),
+    );
+    let cache_repo = hf_hub::Cache::new(root.to_path_buf()).repo(repo.clone());
+    let repo_dir = root.join(repo.folder_name());
+    // `revision` may contain '/' (e.g. "refs/pr/15"); joining keeps it as sub-directories,
+    // exactly how huggingface_hub writes it.
+    let ref_file = repo_dir.join("refs").join(revision);
+    if let Ok(commit) = std::fs::read_to_string(&ref_file) {
+        let commit = commit.trim();
+        let snap = cache_repo.pointer_path(commit);
+        if snap.is_dir() {
+            return Ok(snap);
+        }
+        return Err(ModelError::MissingWeights {
+            file: format!("snapshot {commit} (from ref `{revision}`)"),
+            searched: vec![snap],
+        });
+    }
+    let direct = cache_repo.pointer_path(revision);
+    if direct.is_dir() {
+        return Ok(direct);
+    }
+    Err(ModelError::MissingWeights {
+        file: format!("revision `{revision}` of {repo_id} (offline cache; downloads are disabled)"),
+        searched: vec![ref_file, direct],
+    })
+}
+
+/// Memory-maps safetensors files into a [`VarBuilder`], turning a truncated/corrupt file into an
+/// error that names it (candle's own message does not say which shard).
+pub fn var_builder(
+    files: &[PathBuf],
+    dtype: DType,
+    device: &Device,
+) -> Result<VarBuilder<'static>, ModelError> {
+    for f in files {
+        // Parse each header up front: `from_mmaped_safetensors` would fail too, but without the
+        // path, and only for the first bad shard.
+        // SAFETY: read-only mapping, dropped right away; model files are not expected to change
+        // while the service loads them.
+        if let Err(e) = unsafe { candle_core::safetensors::MmapedSafetensors::new(f) } {
+            return Err(ModelError::BadWeights {
+                path: f.clone(),
+                reason: e.to_string(),
+            });
+        }
+    }
+    // SAFETY: as above; the VarBuilder keeps the mapping alive for the model's lifetime.
+    unsafe { VarBuilder::from_mmaped_safetensors(files, dtype, device) }.map_err(|e| {
+        ModelError::BadWeights {
+            path: files.first().cloned().unwrap_or_default(),
+            reason: e.to_string(),
+        }
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn write(p: &Path, s: &str) {
+        std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+        std::fs::write(p, s).unwrap();
+    }
+
+    #[test]
+    fn cache_dir_env_precedence() {
+        let env = |pairs: &'static [(&'static str, &'static str)]| {
+            move |k: &str| {
+                pairs
+                    .iter()
+                    .find(|(kk, _)| *kk == k)
+                    .map(|(_, v)| v.to_string())
+            }
+        };
+        assert_eq!(
+            hub_cache_dir_from(env(&[("HF_HUB_CACHE", "/c"), ("HF_HOME", "/h")])),
+            PathBuf::from("/c")
+        );
+        assert_eq!(
+            hub_cache_dir_from(env(&[("HF_HOME", "/h"), ("XDG_CACHE_HOME", "/x")])),
+            PathBuf::from("/h/hub")
+        );
+        assert_eq!(
+            hub_cache_dir_from(env(&[("XDG_CACHE_HOME", "/x"), ("HOME", "/u")])),
+            PathBuf::from("/x/huggingface/hub")
+        );
+        assert_eq!(
+            hub_cache_dir_from(env(&[("HOME", "/u")])),
+            PathBuf::from("/u/.cache/huggingface/hub")
+        );
+        assert_eq!(
+            hub_cache_dir_from(env(&[("HF_HUB_CACHE", ""), ("HOME", "/u")])),
+            PathBuf::from("/u/.cache/huggingface/hub")
+        );
+    }
+
+    #[test]
+    fn hub_resolves_branch_commit_and_pr_refs() {
+        let tmp = tempfile::tempdir().unwrap();
+        let root = tmp.path();
+        let repo = root.join("models--org--tiny");
+        let commit = "0123456789abcdef0123456789abcdef01234567";
+        write(&repo.join("refs/main"), &format!("{commit}\n"));
+        write(&repo.join("refs/refs/pr/15"), commit);
+        write(
+            &repo.join("snapshots").join(commit).join("config.json"),
+            "{}",
+        );
+
+        for rev in ["main", "refs/pr/15", commit] {
+            let src = WeightSource::hub("org/tiny", rev).with_cache_dir(root);
+            let p = src.resolve("config.json").unwrap();
+            assert_eq!(
+                p,
+                repo.join("snapshots").join(commit).join("config.json"),
+                "{rev}"
+            );
+        }
+
+        let src = WeightSource::hub("org/tiny", "main").with_cache_dir(root);
+        let e = src.resolve("model.safetensors").unwrap_err();
+        let msg = e.to_string();
+        assert_eq!(e.kind(), "missing_weights");
+        assert!(
+            msg.contains("model.safetensors") && msg.contains(commit),
+            "{msg}"
+        );
+        assert_eq!(src.resolve_optional("nope.json").unwrap(), None);
+
+        let e = WeightSource::hub("org/tiny", "v2")
+            .with_cache_dir(root)
+            .resolve("config.json")
+            .unwrap_err();
+        let msg = e.to_string();
+        assert!(msg.contains("`v2`") && msg.contains("refs/v2"), "{msg}");
+        let e = WeightSource::hub("org/other", "main")
+            .with_cache_dir(root)
+            .resolve("config.json")
+            .unwrap_err();
+        assert!(e.to_string().contains("models--org--other"), "{e}");
+    }
+
+    #[test]
+    fn local_dir_and_parse() {
+        let tmp = tempfile::tempdir().unwrap();
+        write(&tmp.path().join("config.json"), "{\"a\":1}");
+        let src = WeightSource::local(tmp.path());
+        let v: serde_json::Value = src.read_json("config.json").unwrap();
+        assert_eq!(v["a"], 1);
+        let e = src.resolve("model.safetensors").unwrap_err();
+        assert!(e
+            .to_string()
+            .contains(&tmp.path().join("model.safetensors").display().to_string()));
+        let e = WeightSource::local("/definitely/not/here")
+            .resolve("config.json")
+            .unwrap_err();
+        assert!(e.to_string().contains("/definitely/not/here"));
+
+        assert_eq!(
+            WeightSource::parse("hf:a/b@v1"),
+            WeightSource::hub("a/b", "v1")
+        );
+        assert_eq!(
+            WeightSource::parse("hf:a/b"),
+            WeightSource::hub("a/b", "main")
+        );
+        assert_eq!(WeightSource::parse("/m/x"), WeightSource::local("/m/x"));
+    }
+
+    #[test]
+    fn sharded_index_lists_each_shard_once() {
+        let tmp = tempfile::tempdir().unwrap();
+        write(
+            &tmp.path().join("model.safetensors.index.json"),
+            r#"{"weight_map":{"a":"m-2.safetensors","b":"m-1.safetensors","c":"m-2.safetensors"}}"#,
+        );
+        write(&tmp.path().join("m-1.safetensors"), "");
+        let src = WeightSource::local(tmp.path());
+        // m-2 is missing: the error must name it.
+        let e = src.safetensors_files().unwrap_err();
+        assert!(e.to_string().contains("m-2.safetensors"), "{e}");
+        write(&tmp.path().join("m-2.safetensors"), "");
+        let files = src.safetensors_files().unwrap();
+        assert_eq!(files.len(), 2);
+        assert!(files[0].ends_with("m-1.safetensors"));
+    }
+
+    #[test]
+    fn serde_forms() {
+        let a: WeightSource = serde_json::from_str(r#"{"path":"/m"}"#).unwrap();
+        assert_eq!(a, WeightSource::local("/m"));
+        let b: WeightSource = serde_json::from_str(r#"{"hub":"o/n"}"#).unwrap();
+        assert_eq!(b, WeightSource::hub("o/n", "main"));
+    }
+
+    #[test]
+    fn corrupt_safetensors_is_named() {
+        let tmp = tempfile::tempdir().unwrap();
+        let p = tmp.path().join("model.safetensors");
+        std::fs::write(&p, b"\x10\x00\x00\x00\x00\x00\x00\x00{not json").unwrap();
+        let e = match var_builder(std::slice::from_ref(&p), DType::F32, &Device::Cpu) {
+            Err(e) => e,
+            Ok(_) => panic!("corrupt file accepted"),
+        };
+        assert_eq!(e.kind(), "bad_weights");
+        assert!(e.to_string().contains(&p.display().to_string()), "{e}");
+    }
+}
