@@ -1,0 +1,99 @@
+//! The one error type of the crate.
+//!
+//! Uploads come from users, so most failures are the client's fault (a file that is not a
+//! video, too long, broken). The variants are split finely enough that the HTTP layer can
+//! tell the user *what* is wrong without parsing messages, and [`MediaError::is_client_error`]
+//! separates "fix your upload" (4xx) from "our fault" (5xx).
+
+use thiserror::Error;
+
+/// Why a clip could not be probed or sampled.
+#[derive(Debug, Error)]
+pub enum MediaError {
+    /// The file has zero bytes: usually an upload that never arrived, so it gets its own
+    /// message instead of a confusing "not a video".
+    #[error("the file is empty")]
+    Empty,
+    /// No demuxer recognises the bytes: the upload is not a media container at all.
+    #[error("the file is not a video (no known container format)")]
+    NotVideo,
+    /// A real media file without a decodable picture track (audio-only, subtitles, a
+    /// still cover image).
+    #[error("the file has no video stream")]
+    NoVideoStream,
+    /// The container is fine but this FFmpeg build has no decoder for the video codec.
+    #[error("unsupported video codec: {0}")]
+    UnsupportedCodec(String),
+    /// The container was recognised but its data is broken or truncated.
+    #[error("the video is corrupt or truncated: {0}")]
+    Corrupt(String),
+    /// Rejected before opening, so a huge upload costs no decoding time.
+    #[error("the file is {bytes} bytes, more than the limit of {max_bytes}")]
+    TooLarge { bytes: u64, max_bytes: u64 },
+    /// Rejected from the header, before decoding.
+    #[error("the clip lasts {duration_s:.1} s, more than the limit of {max_duration_s:.1} s")]
+    TooLong {
+        duration_s: f64,
+        max_duration_s: f64,
+    },
+    /// Rejected from the header, before decoding: decoding cost and memory grow with the
+    /// pixel count.
+    #[error("the clip is {width}x{height}, more than the limit of {max_width}x{max_height}")]
+    ResolutionTooHigh {
+        width: u32,
+        height: u32,
+        max_width: u32,
+        max_height: u32,
+    },
+    /// The request asked for something impossible (zero frames, a zero-sized output, ...).
+    #[error("invalid sampling options: {0}")]
+    InvalidOptions(String),
+    /// The file could not be read (missing, permissions, disk): a server-side problem,
+    /// since the server wrote the file itself.
+    #[error("i/o error: {0}")]
+    Io(#[from] std::io::Error),
+    /// FFmpeg failed in a way that says nothing about the input (allocation, scaler setup).
+    #[error("internal media error: {0}")]
+    Internal(String),
+}
+
+impl MediaError {
+    /// Whether the request (the uploaded file or the options) is at fault, i.e. whether a
+    /// server should answer 4xx rather than 5xx.
+    pub fn is_client_error(&self) -> bool {
+        !matches!(self, MediaError::Io(_) | MediaError::Internal(_))
+    }
+
+    /// A short, stable, machine-readable name for API responses and metric labels, so that
+    /// clients and dashboards do not depend on the wording of messages.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            MediaError::Empty => "empty",
+            MediaError::NotVideo => "not_video",
+            MediaError::NoVideoStream => "no_video_stream",
+            MediaError::UnsupportedCodec(_) => "unsupported_codec",
+            MediaError::Corrupt(_) => "corrupt",
+            MediaError::TooLarge { .. } => "too_large",
+            MediaError::TooLong { .. } => "too_long",
+            MediaError::ResolutionTooHigh { .. } => "resolution_too_high",
+            MediaError::InvalidOptions(_) => "invalid_options",
+            MediaError::Io(_) => "io",
+            MediaError::Internal(_) => "internal",
+        }
+    }
+
+    /// The HTTP status a server would normally answer with, so that every front end maps
+    /// errors the same way (this crate does not depend on an HTTP library, hence the `u16`).
+    pub fn suggested_http_status(&self) -> u16 {
+        match self {
+            MediaError::TooLarge { .. } => 413,
+            MediaError::NotVideo | MediaError::UnsupportedCodec(_) => 415,
+            MediaError::Empty | MediaError::InvalidOptions(_) => 400,
+            MediaError::NoVideoStream
+            | MediaError::Corrupt(_)
+            | MediaError::TooLong { .. }
+            | MediaError::ResolutionTooHigh { .. } => 422,
+            MediaError::Io(_) | MediaError::Internal(_) => 500,
+        }
+    }
+}
