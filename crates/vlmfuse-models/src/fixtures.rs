@@ -2,6 +2,10 @@
 //! where this is built, so tests here and in the service crate load these through the same code
 //! paths as production checkpoints.
 
+pub mod qwen3_vl;
+
+pub use qwen3_vl::TinyQwen3Vl;
+
 use std::collections::HashMap;
 use std::path::Path;
 

@@ -1,5 +1,5 @@
 //! Model backends for vlmfuse: the context embedder (CLIP on candle), the reporters (remote
-//! OpenAI-compatible VLMs, later in-process candle VLMs), weight loading and device placement.
+//! OpenAI-compatible VLMs and in-process candle VLMs), weight loading and device placement.
 //! Nothing here knows about HTTP serving or the fusion maths.
 
 pub mod device;
@@ -16,7 +16,7 @@ pub use embed::{ClipEmbedder, ContextEmbedder};
 pub use error::ModelError;
 pub use frames::{Frame, FrameRef};
 pub use reporter::{
-    run_all, ClipInput, ClipMeta, OpenAiReporter, OpenAiReporterConfig, Reporter, ReporterFailure,
-    ReporterOutput, DEFAULT_PROMPT,
+    run_all, CandleVlmConfig, CandleVlmReporter, ClipInput, ClipMeta, OpenAiReporter,
+    OpenAiReporterConfig, Reporter, ReporterFailure, ReporterOutput, DEFAULT_PROMPT,
 };
 pub use weights::WeightSource;

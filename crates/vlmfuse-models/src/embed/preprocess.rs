@@ -115,12 +115,90 @@ pub fn clip_preprocess(frame: FrameRef, size: usize) -> Result<Vec<f32>, ModelEr
     Ok(out)
 }
 
+/// Resizes a whole frame to `out_w × out_h` with the same PIL-style antialiased bicubic as
+/// [`clip_preprocess`], returning HWC floats in `0..=255`. Shared with the Qwen-VL video
+/// preprocessing, which resizes without cropping and normalises with its own statistics.
+pub fn resize_rgb(frame: FrameRef, out_w: usize, out_h: usize) -> Result<Vec<f32>, ModelError> {
+    frame.validate()?;
+    if out_w == 0 || out_h == 0 {
+        return Err(ModelError::InvalidInput(format!(
+            "resize target {out_w}x{out_h}"
+        )));
+    }
+    let (in_w, in_h) = (frame.width as usize, frame.height as usize);
+    let cx = coeffs(in_w, out_w);
+    let cy = coeffs(in_h, out_h);
+    let mut tmp = vec![0f32; in_h * out_w * 3];
+    for y in 0..in_h {
+        let row = &frame.rgb[y * in_w * 3..(y + 1) * in_w * 3];
+        for (xo, (xmin, w)) in cx.iter().enumerate() {
+            let mut acc = [0f32; 3];
+            for (k, wk) in w.iter().enumerate() {
+                let p = &row[(xmin + k) * 3..(xmin + k) * 3 + 3];
+                acc[0] += wk * p[0] as f32;
+                acc[1] += wk * p[1] as f32;
+                acc[2] += wk * p[2] as f32;
+            }
+            let t = &mut tmp[(y * out_w + xo) * 3..(y * out_w + xo) * 3 + 3];
+            for c in 0..3 {
+                t[c] = acc[c].clamp(0.0, 255.0);
+            }
+        }
+    }
+    let mut out = vec![0f32; out_h * out_w * 3];
+    for (yo, (ymin, w)) in cy.iter().enumerate() {
+        for xo in 0..out_w {
+            let mut acc = [0f32; 3];
+            for (k, wk) in w.iter().enumerate() {
+                let t = &tmp[((ymin + k) * out_w + xo) * 3..((ymin + k) * out_w + xo) * 3 + 3];
+                acc[0] += wk * t[0];
+                acc[1] += wk * t[1];
+                acc[2] += wk * t[2];
+            }
+            let o = &mut out[(yo * out_w + xo) * 3..(yo * out_w + xo) * 3 + 3];
+            for c in 0..3 {
+                o[c] = acc[c].clamp(0.0, 255.0);
+            }
+        }
+    }
+    Ok(out)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     fn norm(c: usize, v: u8) -> f32 {
         (v as f32 / 255.0 - CLIP_MEAN[c]) / CLIP_STD[c]
+    }
+
+    #[test]
+    fn resize_keeps_flat_colour_and_identity() {
+        let rgb: Vec<u8> = (0..6 * 4).flat_map(|_| [10u8, 128, 250]).collect();
+        let f = FrameRef {
+            width: 6,
+            height: 4,
+            rgb: &rgb,
+        };
+        let out = resize_rgb(f, 3, 2).unwrap();
+        assert_eq!(out.len(), 3 * 2 * 3);
+        for px in out.chunks_exact(3) {
+            for (got, want) in px.iter().zip([10.0, 128.0, 250.0]) {
+                assert!((got - want).abs() < 1e-3, "{got} vs {want}");
+            }
+        }
+        let ramp: Vec<u8> = (0..6 * 4 * 3).map(|i| i as u8).collect();
+        let f = FrameRef {
+            width: 6,
+            height: 4,
+            rgb: &ramp,
+        };
+        let same = resize_rgb(f, 6, 4).unwrap();
+        assert!(same
+            .iter()
+            .zip(&ramp)
+            .all(|(a, &b)| (a - b as f32).abs() < 1e-3));
+        assert!(resize_rgb(f, 0, 4).is_err());
     }
 
     #[test]

@@ -1,8 +1,10 @@
 //! Reporters: the VLMs whose free-text reports the fusion engine combines. A round runs them all
 //! on one clip; a slow or broken reporter must cost at most its timeout and never sink the round.
 
+pub mod candle_vlm;
 mod openai;
 
+pub use candle_vlm::{CandleVlmConfig, CandleVlmReporter, Generation, QwenVlEngine};
 pub use openai::{
     shared_http_client, FrameFormat, OpenAiMode, OpenAiReporter, OpenAiReporterConfig,
 };
