@@ -1,1 +1,561 @@
-//! vlmfuse-store
+//! Durable state of the service: every round it fused, every feedback it acknowledged, and enough
+//! to rebuild the fusion engine exactly on start.
+//!
+//! SQLite in WAL mode with `synchronous=FULL` because it needs no server, survives `kill -9` and
+//! power loss once a transaction commits, and lets readers run beside the one writer.
+//!
+//! The engine is not serialised as a whole. It is a pure function of the labelled rounds in
+//! labelling order and of their feedback outcomes, so the store keeps exactly those and replays
+//! them on start ([`Store::load_engine`]); that keeps each feedback's transaction small (one row,
+//! not a snapshot of the bank) and makes a restart equal, bit for bit, to never having stopped.
+
+use rusqlite::{params, Connection, OptionalExtension, TransactionBehavior};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use vlmfuse_fusion::{Engine, FeedbackOutcome, FusionError, Inference, LabelledRound, Round};
+
+/// Bumped when the schema changes incompatibly; an old database is then refused, not misread.
+pub const SCHEMA_VERSION: i64 = 1;
+
+/// The file under the data directory.
+pub const DB_FILE: &str = "vlmfuse.db";
+
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    #[error("database error: {0}")]
+    Sqlite(#[from] rusqlite::Error),
+    #[error("cannot create data directory {path}: {source}")]
+    DataDir {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("stored value has the wrong type: {0}")]
+    Type(#[from] rusqlite::types::FromSqlError),
+    #[error("stored JSON is unreadable: {0}")]
+    Json(#[from] serde_json::Error),
+    /// The database was written under another reporter list, ontology or schema; reading it
+    /// with this configuration would silently mix up indices.
+    #[error("database does not match this configuration: {0}")]
+    Mismatch(String),
+    #[error("database is inconsistent: {0}")]
+    Corrupt(String),
+    #[error("rebuilding the engine failed: {0}")]
+    Fusion(#[from] FusionError),
+}
+
+/// The part of the service's configuration that fixes what indices in the database mean.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Identity {
+    pub reporters: Vec<String>,
+    /// Label ids in ontology order.
+    pub labels: Vec<String>,
+}
+
+/// A round to store, as inference produced it.
+#[derive(Debug, Clone)]
+pub struct NewRound {
+    pub round: Round,
+    pub inference: Inference,
+    /// The request as received (client id, reports by name) and, for later issues, raw texts
+    /// and clip metadata. Stored verbatim; never read back by the engine.
+    pub request: serde_json::Value,
+    pub created_ms: i64,
+}
+
+/// A stored round, read back for feedback.
+#[derive(Debug, Clone)]
+pub struct StoredRound {
+    pub seq: u64,
+    pub round_id: String,
+    pub round: Round,
+    pub inference: Inference,
+}
+
+/// An acknowledged feedback.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoredFeedback {
+    pub seq: u64,
+    /// 0-based position in labelling order.
+    pub labelled_order: u64,
+    pub truth: Vec<u8>,
+    pub outcome: FeedbackOutcome,
+}
+
+/// What [`Store::load_engine`] found.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LoadReport {
+    pub rounds: u64,
+    pub labelled: u64,
+    /// The `seq` the next stored round gets.
+    pub next_seq: u64,
+}
+
+/// The public id of a round: its creation order, zero-padded so ids sort like rounds.
+pub fn round_id(seq: u64) -> String {
+    format!("r-{seq:08}")
+}
+
+/// Parses a public round id back into its `seq`; `None` for anything [`round_id`] never
+/// produces, so that `r-42` and `r-00000042` cannot both name one round.
+pub fn parse_round_id(id: &str) -> Option<u64> {
+    let digits = id.strip_prefix("r-")?;
+    if !digits.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    let seq: u64 = digits.parse().ok()?;
+    (round_id(seq) == id).then_some(seq)
+}
+
+fn f64s_to_blob(v: &[f64]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(v.len() * 8);
+    for x in v {
+        out.extend_from_slice(&x.to_le_bytes());
+    }
+    out
+}
+
+fn blob_to_f64s(b: &[u8]) -> Result<Vec<f64>, StoreError> {
+    let chunks = b.chunks_exact(8);
+    if !chunks.remainder().is_empty() {
+        return Err(StoreError::Corrupt(format!(
+            "f64 blob of {} bytes is not a multiple of 8",
+            b.len()
+        )));
+    }
+    Ok(chunks
+        .map(|c| f64::from_le_bytes(c.try_into().expect("chunk of 8")))
+        .collect())
+}
+
+fn bools_to_blob(v: &[bool]) -> Vec<u8> {
+    v.iter().map(|&b| b as u8).collect()
+}
+
+fn now_ms() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_millis() as i64)
+        .unwrap_or(0)
+}
+
+/// Milliseconds since the Unix epoch, for `created_ms`.
+pub fn timestamp_ms() -> i64 {
+    now_ms()
+}
+
+const SCHEMA: &str = "
+CREATE TABLE IF NOT EXISTS meta (
+    key   TEXT PRIMARY KEY,
+    value TEXT NOT NULL
+);
+-- What the engine needs on start, kept narrow so that a scan of 100k rows stays fast.
+CREATE TABLE IF NOT EXISTS rounds (
+    seq        INTEGER PRIMARY KEY,
+    round_id   TEXT NOT NULL UNIQUE,
+    created_ms INTEGER NOT NULL,
+    context    BLOB NOT NULL,   -- unit-norm context, f64 little-endian
+    present    BLOB NOT NULL,   -- one byte per configured reporter
+    reports    BLOB NOT NULL,   -- n * L bytes, 0/1
+    q          BLOB NOT NULL,   -- posteriors at inference, f64 LE (the threshold fit needs them)
+    threshold  REAL NOT NULL    -- threshold in force at inference: the threshold history
+);
+-- What feedback and audits need: the frozen signals, w used, the request and its raw texts.
+CREATE TABLE IF NOT EXISTS round_detail (
+    seq       INTEGER PRIMARY KEY REFERENCES rounds(seq),
+    inference TEXT NOT NULL,    -- vlmfuse_fusion::Inference as JSON (signals, q, w_used, ...)
+    request   TEXT NOT NULL     -- the request as received, plus later raw texts/metadata
+);
+CREATE TABLE IF NOT EXISTS feedback (
+    seq            INTEGER PRIMARY KEY REFERENCES rounds(seq),
+    labelled_order INTEGER NOT NULL UNIQUE,
+    created_ms     INTEGER NOT NULL,
+    truth          BLOB NOT NULL,   -- L bytes, 0/1
+    outcome        TEXT NOT NULL    -- vlmfuse_fusion::FeedbackOutcome as JSON
+);
+-- One row: the reputations after the last feedback, to check the rebuild against.
+CREATE TABLE IF NOT EXISTS state (
+    id          INTEGER PRIMARY KEY CHECK (id = 1),
+    reputations TEXT NOT NULL,
+    labelled    INTEGER NOT NULL
+);
+";
+
+/// The database. One `Store` is the service's single writer; open another for reads elsewhere.
+pub struct Store {
+    conn: Connection,
+    path: PathBuf,
+}
+
+impl Store {
+    /// Opens (creating if needed) the database under `dir`.
+    pub fn open(dir: &Path) -> Result<Self, StoreError> {
+        std::fs::create_dir_all(dir).map_err(|source| StoreError::DataDir {
+            path: dir.to_path_buf(),
+            source,
+        })?;
+        let path = dir.join(DB_FILE);
+        let conn = Connection::open(&path)?;
+        // WAL lets a reader see the last commit while the writer works; FULL syncs the WAL on
+        // every commit, which is what "acknowledged only after it commits" needs.
+        conn.pragma_update(None, "journal_mode", "WAL")?;
+        conn.pragma_update(None, "synchronous", "FULL")?;
+        conn.pragma_update(None, "foreign_keys", "ON")?;
+        conn.busy_timeout(std::time::Duration::from_secs(10))?;
+        conn.execute_batch(SCHEMA)?;
+        let version: Option<String> = conn
+            .query_row(
+                "SELECT value FROM meta WHERE key = 'schema_version'",
+                [],
+                |r| r.get(0),
+            )
+            .optional()?;
+        match version {
+            None => {
+                conn.execute(
+                    "INSERT INTO meta (key, value) VALUES ('schema_version', ?1)",
+                    params![SCHEMA_VERSION.to_string()],
+                )?;
+            }
+            Some(v) if v == SCHEMA_VERSION.to_string() => {}
+            Some(v) => {
+                return Err(StoreError::Mismatch(format!(
+                    "schema version {v}, this build reads {SCHEMA_VERSION}"
+                )))
+            }
+        }
+        Ok(Self { conn, path })
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    fn meta(&self, key: &str) -> Result<Option<String>, StoreError> {
+        Ok(self
+            .conn
+            .query_row("SELECT value FROM meta WHERE key = ?1", [key], |r| r.get(0))
+            .optional()?)
+    }
+
+    /// Records the identity on first use and refuses a database written under another one.
+    pub fn check_identity(&mut self, id: &Identity) -> Result<(), StoreError> {
+        let want = serde_json::to_string(id)?;
+        match self.meta("identity")? {
+            None => {
+                self.conn.execute(
+                    "INSERT INTO meta (key, value) VALUES ('identity', ?1)",
+                    [&want],
+                )?;
+                Ok(())
+            }
+            Some(have) => {
+                let have_id: Identity = serde_json::from_str(&have)?;
+                if &have_id == id {
+                    Ok(())
+                } else {
+                    Err(StoreError::Mismatch(format!(
+                        "it was written with reporters {:?} and labels {:?}, but the \
+                         configuration names reporters {:?} and labels {:?}; use another \
+                         data directory or the old configuration",
+                        have_id.reporters, have_id.labels, id.reporters, id.labels
+                    )))
+                }
+            }
+        }
+    }
+
+    /// The context dimension fixed by the first stored round, if any.
+    pub fn dim(&self) -> Result<Option<usize>, StoreError> {
+        match self.meta("dim")? {
+            None => Ok(None),
+            Some(v) => v
+                .parse()
+                .map(Some)
+                .map_err(|_| StoreError::Corrupt(format!("dim {v:?} is not a number"))),
+        }
+    }
+
+    /// Rebuilds a freshly built engine (same reporters, ontology and config as the database)
+    /// by applying every labelled round with its stored outcome in labelling order.
+    ///
+    /// Applying the stored outcome rather than recomputing it is what makes a restart exact: the
+    /// reputation and statistics updates are the very floating-point operations the live service
+    /// did, in the same order.
+    pub fn load_engine(&self, engine: &mut Engine) -> Result<LoadReport, StoreError> {
+        if engine.labelled() != 0 {
+            return Err(StoreError::Corrupt(
+                "load_engine needs a fresh engine".into(),
+            ));
+        }
+        if let Some(d) = self.dim()? {
+            engine.fix_dim(d)?;
+        }
+        let n = engine.reporters().len();
+        let l = engine.ontology().len();
+        let mut stmt = self.conn.prepare(
+            "SELECT r.seq, r.context, r.present, r.reports, r.q, f.truth, f.outcome
+             FROM feedback f JOIN rounds r ON r.seq = f.seq
+             ORDER BY f.labelled_order",
+        )?;
+        let mut rows = stmt.query([])?;
+        let mut labelled = 0u64;
+        while let Some(row) = rows.next()? {
+            let seq: i64 = row.get(0)?;
+            let context = blob_to_f64s(row.get_ref(1)?.as_blob()?)?;
+            let present: Vec<bool> = row.get_ref(2)?.as_blob()?.iter().map(|&b| b != 0).collect();
+            let reports = row.get_ref(3)?.as_blob()?.to_vec();
+            let q = blob_to_f64s(row.get_ref(4)?.as_blob()?)?;
+            let truth = row.get_ref(5)?.as_blob()?.to_vec();
+            let outcome: FeedbackOutcome = serde_json::from_slice(row.get_ref(6)?.as_bytes()?)?;
+            if present.len() != n || reports.len() != n * l || truth.len() != l || q.len() != l {
+                return Err(StoreError::Corrupt(format!(
+                    "round {seq} has sizes that do not match {n} reporters and {l} labels"
+                )));
+            }
+            let lr = LabelledRound {
+                seq: seq as u64,
+                round: Round {
+                    context,
+                    present,
+                    reports,
+                },
+                truth,
+                q,
+            };
+            engine.apply(&lr, Some(&outcome))?;
+            labelled += 1;
+        }
+        // The state row is written in the same transaction as each feedback: a rebuild that
+        // disagrees with it means the tables were edited or damaged, and serving would be wrong.
+        let state: Option<(String, i64)> = self
+            .conn
+            .query_row(
+                "SELECT reputations, labelled FROM state WHERE id = 1",
+                [],
+                |r| Ok((r.get(0)?, r.get(1)?)),
+            )
+            .optional()?;
+        if let Some((w, lab)) = state {
+            let w: Vec<f64> = serde_json::from_str(&w)?;
+            if lab as u64 != labelled || w.as_slice() != engine.reputations() {
+                return Err(StoreError::Corrupt(format!(
+                    "the rebuilt state ({labelled} labelled, reputations {:?}) differs from \
+                     the stored one ({lab} labelled, reputations {w:?})",
+                    engine.reputations()
+                )));
+            }
+        } else if labelled != 0 {
+            return Err(StoreError::Corrupt("feedback without a state row".into()));
+        }
+        let (rounds, max_seq): (i64, Option<i64>) =
+            self.conn
+                .query_row("SELECT COUNT(*), MAX(seq) FROM rounds", [], |r| {
+                    Ok((r.get(0)?, r.get(1)?))
+                })?;
+        Ok(LoadReport {
+            rounds: rounds as u64,
+            labelled,
+            next_seq: max_seq.map(|m| m as u64 + 1).unwrap_or(0),
+        })
+    }
+
+    /// Stores rounds in one transaction (group commit), numbered from `first_seq`. The first
+    /// round ever stored fixes the context dimension in the same transaction.
+    pub fn insert_rounds(&mut self, first_seq: u64, rounds: &[NewRound]) -> Result<(), StoreError> {
+        let tx = self
+            .conn
+            .transaction_with_behavior(TransactionBehavior::Immediate)?;
+        {
+            if let Some(first) = rounds.first() {
+                let d = first.round.context.len();
+                let have: Option<String> = tx
+                    .query_row("SELECT value FROM meta WHERE key = 'dim'", [], |r| r.get(0))
+                    .optional()?;
+                match have {
+                    None => {
+                        tx.execute(
+                            "INSERT INTO meta (key, value) VALUES ('dim', ?1)",
+                            [d.to_string()],
+                        )?;
+                    }
+                    Some(v) if v == d.to_string() => {}
+                    Some(v) => {
+                        return Err(StoreError::Mismatch(format!(
+                            "context dimension {d}, but the database holds dimension {v}"
+                        )))
+                    }
+                }
+            }
+            let mut ins = tx.prepare_cached(
+                "INSERT INTO rounds (seq, round_id, created_ms, context, present, reports, q, threshold)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)",
+            )?;
+            let mut det = tx.prepare_cached(
+                "INSERT INTO round_detail (seq, inference, request) VALUES (?1, ?2, ?3)",
+            )?;
+            for (i, r) in rounds.iter().enumerate() {
+                let seq = first_seq + i as u64;
+                let threshold = r.inference.thresholds.first().copied().unwrap_or(f64::NAN);
+                ins.execute(params![
+                    seq as i64,
+                    round_id(seq),
+                    r.created_ms,
+                    f64s_to_blob(&r.round.context),
+                    bools_to_blob(&r.round.present),
+                    &r.round.reports,
+                    f64s_to_blob(&r.inference.q),
+                    threshold,
+                ])?;
+                det.execute(params![
+                    seq as i64,
+                    serde_json::to_string(&r.inference)?,
+                    serde_json::to_string(&r.request)?,
+                ])?;
+            }
+        }
+        tx.commit()?;
+        Ok(())
+    }
+
+    /// Reads a stored round with its frozen inference.
+    pub fn round(&self, seq: u64) -> Result<Option<StoredRound>, StoreError> {
+        let row = self
+            .conn
+            .query_row(
+                "SELECT r.context, r.present, r.reports, d.inference
+                 FROM rounds r JOIN round_detail d ON d.seq = r.seq WHERE r.seq = ?1",
+                [seq as i64],
+                |row| {
+                    Ok((
+                        row.get::<_, Vec<u8>>(0)?,
+                        row.get::<_, Vec<u8>>(1)?,
+                        row.get::<_, Vec<u8>>(2)?,
+                        row.get::<_, String>(3)?,
+                    ))
+                },
+            )
+            .optional()?;
+        let Some((ctx, present, reports, inf)) = row else {
+            return Ok(None);
+        };
+        Ok(Some(StoredRound {
+            seq,
+            round_id: round_id(seq),
+            round: Round {
+                context: blob_to_f64s(&ctx)?,
+                present: present.iter().map(|&b| b != 0).collect(),
+                reports,
+            },
+            inference: serde_json::from_str(&inf)?,
+        }))
+    }
+
+    /// The request JSON stored with a round.
+    pub fn request(&self, seq: u64) -> Result<Option<serde_json::Value>, StoreError> {
+        let s: Option<String> = self
+            .conn
+            .query_row(
+                "SELECT request FROM round_detail WHERE seq = ?1",
+                [seq as i64],
+                |r| r.get(0),
+            )
+            .optional()?;
+        Ok(match s {
+            Some(s) => Some(serde_json::from_str(&s)?),
+            None => None,
+        })
+    }
+
+    /// The feedback acknowledged for a round, if any.
+    pub fn feedback(&self, seq: u64) -> Result<Option<StoredFeedback>, StoreError> {
+        let row = self
+            .conn
+            .query_row(
+                "SELECT labelled_order, truth, outcome FROM feedback WHERE seq = ?1",
+                [seq as i64],
+                |r| {
+                    Ok((
+                        r.get::<_, i64>(0)?,
+                        r.get::<_, Vec<u8>>(1)?,
+                        r.get::<_, String>(2)?,
+                    ))
+                },
+            )
+            .optional()?;
+        let Some((order, truth, outcome)) = row else {
+            return Ok(None);
+        };
+        Ok(Some(StoredFeedback {
+            seq,
+            labelled_order: order as u64,
+            truth,
+            outcome: serde_json::from_str(&outcome)?,
+        }))
+    }
+
+    /// Commits feedback, in labelling order, and the reputations the last one leads to, in one
+    /// transaction. The caller applies them to the engine only after this returns `Ok`.
+    pub fn insert_feedback(&mut self, fbs: &[StoredFeedback]) -> Result<(), StoreError> {
+        let Some(last) = fbs.last() else {
+            return Ok(());
+        };
+        let tx = self
+            .conn
+            .transaction_with_behavior(TransactionBehavior::Immediate)?;
+        {
+            let labelled: i64 = tx.query_row("SELECT COUNT(*) FROM feedback", [], |r| r.get(0))?;
+            let mut ins = tx.prepare_cached(
+                "INSERT INTO feedback (seq, labelled_order, created_ms, truth, outcome)
+                 VALUES (?1, ?2, ?3, ?4, ?5)",
+            )?;
+            let now = now_ms();
+            for (i, fb) in fbs.iter().enumerate() {
+                if labelled as u64 + i as u64 != fb.labelled_order {
+                    return Err(StoreError::Corrupt(format!(
+                        "feedback would be number {} in labelling order, but {} precede it",
+                        fb.labelled_order,
+                        labelled as u64 + i as u64
+                    )));
+                }
+                ins.execute(params![
+                    fb.seq as i64,
+                    fb.labelled_order as i64,
+                    now,
+                    &fb.truth,
+                    serde_json::to_string(&fb.outcome)?
+                ])?;
+            }
+            tx.execute(
+                "INSERT INTO state (id, reputations, labelled) VALUES (1, ?1, ?2)
+                 ON CONFLICT(id) DO UPDATE SET reputations = excluded.reputations,
+                                               labelled = excluded.labelled",
+                params![
+                    serde_json::to_string(&last.outcome.w_after)?,
+                    last.labelled_order as i64 + 1
+                ],
+            )?;
+        }
+        tx.commit()?;
+        Ok(())
+    }
+
+    /// Counts of stored rounds and feedback, for tests and `/v1/state`.
+    pub fn counts(&self) -> Result<(u64, u64), StoreError> {
+        let r: i64 = self
+            .conn
+            .query_row("SELECT COUNT(*) FROM rounds", [], |r| r.get(0))?;
+        let f: i64 = self
+            .conn
+            .query_row("SELECT COUNT(*) FROM feedback", [], |r| r.get(0))?;
+        Ok((r as u64, f as u64))
+    }
+
+    /// Cheap liveness check of the connection, for `/readyz`.
+    pub fn ping(&self) -> Result<(), StoreError> {
+        self.conn.query_row("SELECT 1", [], |_| Ok(()))?;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests;

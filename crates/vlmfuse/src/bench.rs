@@ -144,7 +144,9 @@ fn engine_bench(args: &BenchArgs) -> Result<(), String> {
                 truth: y,
                 q: inf.q,
             };
-            engine.apply(&lr, Some(&outcome)).map_err(|e| e.to_string())?;
+            engine
+                .apply(&lr, Some(&outcome))
+                .map_err(|e| e.to_string())?;
             lat.push(start.elapsed().as_secs_f64() * 1e6);
         }
         let mean = lat.iter().sum::<f64>() / lat.len() as f64;
@@ -234,7 +236,8 @@ fn knn_bench(args: &BenchArgs) -> Result<(), String> {
             batch_knn: batch,
         };
         let start = Instant::now();
-        let (_, outs) = replay(engine.clone(), &rounds, &opts, &mut |_| {}).map_err(|e| e.to_string())?;
+        let (_, outs) =
+            replay(engine.clone(), &rounds, &opts, &mut |_| {}).map_err(|e| e.to_string())?;
         std::hint::black_box(outs);
         times.push(start.elapsed().as_secs_f64());
     }
@@ -253,7 +256,8 @@ fn eval_bench(args: &BenchArgs) -> Result<(), String> {
     std::fs::create_dir_all(&dir).map_err(|e| e.to_string())?;
     let path = dir.join("rounds-2000-d103.jsonl");
     {
-        let mut f = std::io::BufWriter::new(std::fs::File::create(&path).map_err(|e| e.to_string())?);
+        let mut f =
+            std::io::BufWriter::new(std::fs::File::create(&path).map_err(|e| e.to_string())?);
         for (_, r) in &records {
             serde_json::to_writer(&mut f, r).map_err(|e| e.to_string())?;
             f.write_all(b"\n").map_err(|e| e.to_string())?;

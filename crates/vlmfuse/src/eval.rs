@@ -15,7 +15,9 @@ use vlmfuse_fusion::replay::{
     history_len, prepare, replay, score_baselines, score_method, ParsedRound, ReplayOptions,
     RoundOutcome,
 };
-use vlmfuse_fusion::{Ablations, Engine, FusionConfig, Label, Ontology, RoundRecord, ThresholdMode};
+use vlmfuse_fusion::{
+    Ablations, Engine, FusionConfig, Label, Ontology, RoundRecord, ThresholdMode,
+};
 
 #[derive(Args, Debug, Clone)]
 pub struct EvalArgs {
@@ -340,7 +342,8 @@ pub fn run(args: EvalArgs) -> Result<(), String> {
         w.flush().map_err(|e| format!("{}: {e}", path.display()))?;
     }
     if let Some(path) = &args.report {
-        let text = serde_json::to_string_pretty(&report_json(&run, &args)).map_err(|e| e.to_string())?;
+        let text =
+            serde_json::to_string_pretty(&report_json(&run, &args)).map_err(|e| e.to_string())?;
         std::fs::write(path, text).map_err(|e| format!("{}: {e}", path.display()))?;
     }
     if let Some(dir) = &args.plots {

@@ -71,7 +71,9 @@ fn reputations(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
             ))
             .map_err(err(path))?
             .label(name.as_str())
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+            });
     }
     let h = run.n_hist as f64;
     chart
@@ -115,7 +117,10 @@ fn reliability(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
         .draw()
         .map_err(err(path))?;
     chart
-        .draw_series(LineSeries::new(vec![(0.0, 0.0), (1.0, 1.0)], BLACK.mix(0.4)))
+        .draw_series(LineSeries::new(
+            vec![(0.0, 0.0), (1.0, 1.0)],
+            BLACK.mix(0.4),
+        ))
         .map_err(err(path))?
         .label("perfect calibration")
         .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK.mix(0.4)));
@@ -130,18 +135,18 @@ fn reliability(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
         }))
         .map_err(err(path))?
         .label("observed per bin")
-        .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 20, y + 5)], blue.mix(0.35).filled()));
+        .legend(move |(x, y)| {
+            Rectangle::new([(x, y - 5), (x + 20, y + 5)], blue.mix(0.35).filled())
+        });
     chart
-        .draw_series(
-            scores
-                .reliability
-                .iter()
-                .filter(|b| b.count > 0)
-                .map(|b| {
-                    let r = 3.0 + 9.0 * (b.count as f64 / total.max(1) as f64).sqrt();
-                    Circle::new((b.mean_predicted, b.observed), r as i32, PALETTE[3].filled())
-                }),
-        )
+        .draw_series(scores.reliability.iter().filter(|b| b.count > 0).map(|b| {
+            let r = 3.0 + 9.0 * (b.count as f64 / total.max(1) as f64).sqrt();
+            Circle::new(
+                (b.mean_predicted, b.observed),
+                r as i32,
+                PALETTE[3].filled(),
+            )
+        }))
         .map_err(err(path))?
         .label("(mean predicted, observed); area ~ count")
         .legend(|(x, y)| Circle::new((x + 10, y), 4, PALETTE[3].filled()));
@@ -164,7 +169,10 @@ fn ablations(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
     let root = SVGBackend::new(path, (1200, height)).into_drawing_area();
     root.fill(&WHITE).map_err(err(path))?;
     let root = root
-        .titled("Method, ablations and baselines on the scored rounds", ("sans-serif", 24))
+        .titled(
+            "Method, ablations and baselines on the scored rounds",
+            ("sans-serif", 24),
+        )
         .map_err(err(path))?;
     let panels = root.split_by_breakpoints([520, 747, 974], [] as [u32; 0]);
     let metrics: [(&str, fn(&vlmfuse_fusion::metrics::Scores) -> f64); 3] = [
@@ -175,7 +183,12 @@ fn ablations(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
     let names: Vec<String> = rows.iter().map(|r| r.name.clone()).collect();
     for (p, (title, get)) in metrics.iter().enumerate() {
         let area = &panels[p];
-        let xmax = rows.iter().map(|r| get(&r.scores)).fold(0.0f64, f64::max).max(0.05) * 1.1;
+        let xmax = rows
+            .iter()
+            .map(|r| get(&r.scores))
+            .fold(0.0f64, f64::max)
+            .max(0.05)
+            * 1.1;
         let mut chart = ChartBuilder::on(area)
             .caption(*title, ("sans-serif", 18))
             .margin(8)

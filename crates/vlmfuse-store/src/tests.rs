@@ -1,0 +1,211 @@
+use super::*;
+use vlmfuse_fusion::{FusionConfig, Ontology, RoundRecord};
+
+fn engine() -> Engine {
+    Engine::new(
+        FusionConfig::default(),
+        Ontology::paper(),
+        vec!["a".into(), "b".into(), "c".into()],
+    )
+    .unwrap()
+}
+
+fn identity(e: &Engine) -> Identity {
+    Identity {
+        reporters: e.reporters().to_vec(),
+        labels: e.ontology().labels().iter().map(|l| l.id.clone()).collect(),
+    }
+}
+
+/// A deterministic stream of rounds: small LCG, 8-d contexts, reports that mostly agree.
+fn record(i: u64) -> RoundRecord {
+    let mut s = i
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
+    let mut next = || {
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (s >> 33) as f64 / (1u64 << 31) as f64
+    };
+    let context: Vec<f64> = (0..8).map(|_| next() - 0.3).collect();
+    let labels = Ontology::paper();
+    let truth: Vec<String> = (0..14)
+        .filter(|_| next() < 0.2)
+        .map(|k| labels.id(k).to_string())
+        .collect();
+    let mut reports = std::collections::BTreeMap::new();
+    for name in ["a", "b", "c"] {
+        if next() < 0.1 {
+            continue;
+        }
+        let mut r: Vec<String> = truth.iter().filter(|_| next() < 0.8).cloned().collect();
+        if next() < 0.3 {
+            r.push("brake".into());
+        }
+        reports.insert(name.to_string(), r);
+    }
+    if reports.is_empty() {
+        reports.insert("a".into(), vec![]);
+    }
+    RoundRecord {
+        id: None,
+        context,
+        reports,
+        truth: Some(truth),
+    }
+}
+
+/// Plays rounds against an engine and a store like the service does: infer, store, then
+/// credit, commit, apply.
+fn play(engine: &mut Engine, store: &mut Store, from: u64, to: u64) {
+    for i in from..to {
+        let rec = record(i);
+        let (round, truth) = engine.parse(&rec).unwrap();
+        if engine.dim().is_none() {
+            engine.fix_dim(round.context.len()).unwrap();
+        }
+        let inf = engine.infer(&round);
+        store
+            .insert_rounds(
+                i,
+                &[NewRound {
+                    round: round.clone(),
+                    inference: inf.clone(),
+                    request: serde_json::json!({}),
+                    created_ms: 0,
+                }],
+            )
+            .unwrap();
+        if i % 5 == 4 {
+            continue; // an unlabelled round
+        }
+        let stored = store.round(i).unwrap().unwrap();
+        assert_eq!(stored.inference, inf, "the inference round-trips exactly");
+        let truth = truth.unwrap();
+        let outcome = engine.credit(
+            &stored.inference.signals,
+            &stored.inference.w_used,
+            &truth,
+            i,
+        );
+        let fb = StoredFeedback {
+            seq: i,
+            labelled_order: engine.labelled(),
+            truth: truth.clone(),
+            outcome: outcome.clone(),
+        };
+        store.insert_feedback(std::slice::from_ref(&fb)).unwrap();
+        assert_eq!(store.feedback(i).unwrap().unwrap(), fb);
+        engine
+            .apply(
+                &LabelledRound {
+                    seq: i,
+                    round,
+                    truth,
+                    q: inf.q,
+                },
+                Some(&outcome),
+            )
+            .unwrap();
+    }
+}
+
+#[test]
+fn a_rebuilt_engine_continues_exactly() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut live = engine();
+    let mut store = Store::open(dir.path()).unwrap();
+    store.check_identity(&identity(&live)).unwrap();
+    play(&mut live, &mut store, 0, 120);
+    drop(store);
+
+    let mut store = Store::open(dir.path()).unwrap();
+    store.check_identity(&identity(&live)).unwrap();
+    let mut rebuilt = engine();
+    let rep = store.load_engine(&mut rebuilt).unwrap();
+    assert_eq!(rep.rounds, 120);
+    assert_eq!(rep.labelled, 96);
+    assert_eq!(rep.next_seq, 120);
+    assert_eq!(rebuilt.reputations(), live.reputations());
+    assert_eq!(rebuilt.stats(), live.stats());
+    assert_eq!(
+        rebuilt.threshold().thresholds(),
+        live.threshold().thresholds()
+    );
+    assert_eq!(rebuilt.dim(), Some(8));
+    // Both continue: same posteriors and reputations.
+    let mut store2 = store;
+    play(&mut rebuilt, &mut store2, 120, 150);
+    let dir2 = tempfile::tempdir().unwrap();
+    let mut scratch = Store::open(dir2.path()).unwrap();
+    // `live` continues against a scratch store holding the same history.
+    let mut live2 = engine();
+    play(&mut live2, &mut scratch, 0, 150);
+    assert_eq!(rebuilt.reputations(), live2.reputations());
+    let probe = live2.parse(&record(999)).unwrap().0;
+    assert_eq!(rebuilt.infer(&probe), live2.infer(&probe));
+}
+
+#[test]
+fn another_configuration_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let e = engine();
+    let mut store = Store::open(dir.path()).unwrap();
+    store.check_identity(&identity(&e)).unwrap();
+    drop(store);
+    let mut store = Store::open(dir.path()).unwrap();
+    let mut other = identity(&e);
+    other.reporters.reverse();
+    let err = store.check_identity(&other).unwrap_err();
+    assert!(matches!(err, StoreError::Mismatch(_)), "{err}");
+}
+
+#[test]
+fn a_tampered_state_is_detected() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut live = engine();
+    let mut store = Store::open(dir.path()).unwrap();
+    play(&mut live, &mut store, 0, 10);
+    store
+        .conn
+        .execute("UPDATE state SET reputations = '[0.5, 0.25, 0.25]'", [])
+        .unwrap();
+    let err = store.load_engine(&mut engine()).unwrap_err();
+    assert!(matches!(err, StoreError::Corrupt(_)), "{err}");
+}
+
+#[test]
+fn another_dimension_is_refused_in_the_transaction() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut e = engine();
+    let mut store = Store::open(dir.path()).unwrap();
+    play(&mut e, &mut store, 0, 1);
+    let mut rec = record(1);
+    rec.context.push(1.0);
+    let (round, _) = engine().parse(&rec).unwrap();
+    let inf = engine().infer(&round);
+    let err = store
+        .insert_rounds(
+            1,
+            &[NewRound {
+                round,
+                inference: inf,
+                request: serde_json::Value::Null,
+                created_ms: 0,
+            }],
+        )
+        .unwrap_err();
+    assert!(matches!(err, StoreError::Mismatch(_)));
+    assert_eq!(store.counts().unwrap(), (1, 1));
+}
+
+#[test]
+fn round_ids_are_canonical() {
+    assert_eq!(round_id(42), "r-00000042");
+    assert_eq!(parse_round_id("r-00000042"), Some(42));
+    assert_eq!(parse_round_id("r-42"), None);
+    assert_eq!(parse_round_id("r-+0000042"), None);
+    assert_eq!(parse_round_id("x-00000042"), None);
+    assert_eq!(parse_round_id("r-123456789"), Some(123_456_789));
+}

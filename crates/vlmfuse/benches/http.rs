@@ -1,0 +1,250 @@
+//! `/v1/fuse` requests per second with a 10k-round bank, against `/healthz` on the same server
+//! in the same run: the ratio is the cost of fusion (kNN over the bank, Shapley-ready signals,
+//! a durable group-committed insert) over the HTTP stack alone.
+//!
+//! `cargo bench -p vlmfuse --bench http [-- BANK SECONDS CLIENTS]` (defaults 10000 5 16).
+//! The bank is written straight into the database (the rebuild on start is what a restarted
+//! service does), so the run does not spend minutes on 10k fsynced feedbacks first.
+
+use std::collections::BTreeMap;
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::TcpStream;
+use std::process::{Command, Stdio};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use vlmfuse_fusion::{Engine, FusionConfig, Ontology, RoundRecord};
+use vlmfuse_store::{Identity, NewRound, Store, StoredFeedback};
+
+const D: usize = 128;
+const REPORTERS: [&str; 3] = ["vlaad", "videollama2", "videollava"];
+
+struct Rng(u64);
+impl Rng {
+    fn f(&mut self) -> f64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+fn record(rng: &mut Rng, ont: &Ontology) -> RoundRecord {
+    let mut reports = BTreeMap::new();
+    for r in REPORTERS {
+        let labs = (0..ont.len())
+            .filter(|_| rng.f() < 0.15)
+            .map(|k| ont.id(k).to_string())
+            .collect();
+        reports.insert(r.to_string(), labs);
+    }
+    RoundRecord {
+        id: None,
+        context: (0..D).map(|_| rng.f() - 0.5).collect(),
+        reports,
+        truth: Some(
+            (0..ont.len())
+                .filter(|_| rng.f() < 0.15)
+                .map(|k| ont.id(k).to_string())
+                .collect(),
+        ),
+    }
+}
+
+fn prefill(dir: &std::path::Path, bank: u64) {
+    let ont = Ontology::paper();
+    let reporters: Vec<String> = REPORTERS.map(String::from).to_vec();
+    let engine = Engine::new(FusionConfig::default(), ont.clone(), reporters.clone()).unwrap();
+    let mut store = Store::open(dir).unwrap();
+    store
+        .check_identity(&Identity {
+            reporters,
+            labels: ont.labels().iter().map(|l| l.id.clone()).collect(),
+        })
+        .unwrap();
+    let mut rng = Rng(42);
+    let mut rounds = Vec::new();
+    let mut fbs = Vec::new();
+    let mut outcome = None;
+    for seq in 0..bank {
+        let rec = record(&mut rng, &ont);
+        let (round, truth) = engine.parse(&rec).unwrap();
+        let mut inf = engine.infer(&round);
+        inf.q = (0..ont.len()).map(|_| rng.f()).collect();
+        let truth = truth.unwrap();
+        let o = outcome
+            .get_or_insert_with(|| engine.credit(&inf.signals, &inf.w_used, &truth, 0))
+            .clone();
+        fbs.push(StoredFeedback {
+            seq,
+            labelled_order: seq,
+            truth,
+            outcome: o,
+        });
+        rounds.push(NewRound {
+            round,
+            inference: inf,
+            request: serde_json::Value::Null,
+            created_ms: 0,
+        });
+    }
+    store.insert_rounds(0, &rounds).unwrap();
+    store.insert_feedback(&fbs).unwrap();
+}
+
+/// A keep-alive HTTP/1.1 connection that sends one request at a time.
+struct Conn {
+    w: TcpStream,
+    r: BufReader<TcpStream>,
+}
+
+impl Conn {
+    fn new(addr: &str) -> Conn {
+        let s = TcpStream::connect(addr).unwrap();
+        s.set_nodelay(true).unwrap();
+        Conn {
+            r: BufReader::new(s.try_clone().unwrap()),
+            w: s,
+        }
+    }
+
+    fn send(&mut self, raw: &[u8]) -> u16 {
+        self.w.write_all(raw).unwrap();
+        let mut line = String::new();
+        self.r.read_line(&mut line).unwrap();
+        let status: u16 = line.split(' ').nth(1).unwrap().parse().unwrap();
+        let mut len = 0usize;
+        loop {
+            line.clear();
+            self.r.read_line(&mut line).unwrap();
+            let l = line.trim_end();
+            if l.is_empty() {
+                break;
+            }
+            if let Some((k, v)) = l.split_once(':') {
+                if k.eq_ignore_ascii_case("content-length") {
+                    len = v.trim().parse().unwrap();
+                }
+            }
+        }
+        let mut body = vec![0u8; len];
+        self.r.read_exact(&mut body).unwrap();
+        status
+    }
+}
+
+fn load(addr: &str, requests: Arc<Vec<Vec<u8>>>, clients: usize, secs: f64) -> (f64, Vec<f64>) {
+    let stop = Arc::new(AtomicBool::new(false));
+    let done = Arc::new(AtomicU64::new(0));
+    let handles: Vec<_> = (0..clients)
+        .map(|c| {
+            let (addr, reqs, stop, done) = (
+                addr.to_string(),
+                requests.clone(),
+                stop.clone(),
+                done.clone(),
+            );
+            std::thread::spawn(move || {
+                let mut conn = Conn::new(&addr);
+                let mut lat = Vec::new();
+                let mut i = c;
+                while !stop.load(Ordering::Relaxed) {
+                    let t = Instant::now();
+                    let st = conn.send(&reqs[i % reqs.len()]);
+                    assert_eq!(st, 200);
+                    lat.push(t.elapsed().as_secs_f64());
+                    done.fetch_add(1, Ordering::Relaxed);
+                    i += clients;
+                }
+                lat
+            })
+        })
+        .collect();
+    let start = Instant::now();
+    std::thread::sleep(Duration::from_secs_f64(secs));
+    stop.store(true, Ordering::Relaxed);
+    let mut lat: Vec<f64> = handles
+        .into_iter()
+        .flat_map(|h| h.join().unwrap())
+        .collect();
+    let rps = done.load(Ordering::Relaxed) as f64 / start.elapsed().as_secs_f64();
+    lat.sort_by(f64::total_cmp);
+    let pct = |p: f64| lat[((lat.len() - 1) as f64 * p) as usize] * 1e3;
+    (rps, vec![pct(0.5), pct(0.99)])
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with("--"))
+        .collect();
+    let bank: u64 = args.first().and_then(|a| a.parse().ok()).unwrap_or(10_000);
+    let secs: f64 = args.get(1).and_then(|a| a.parse().ok()).unwrap_or(5.0);
+    let clients: usize = args.get(2).and_then(|a| a.parse().ok()).unwrap_or(16);
+
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let t = Instant::now();
+    prefill(&data, bank);
+    eprintln!(
+        "prefilled {bank} labelled rounds in {:.1} s",
+        t.elapsed().as_secs_f64()
+    );
+
+    let mut child = Command::new(env!("CARGO_BIN_EXE_vlmfuse"))
+        .args(["serve", "--listen", "127.0.0.1:0", "--data-dir"])
+        .arg(&data)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let started = Instant::now();
+    let mut out = BufReader::new(child.stdout.take().unwrap());
+    let mut line = String::new();
+    out.read_line(&mut line).unwrap();
+    let addr = line
+        .trim()
+        .strip_prefix("vlmfuse listening on http://")
+        .expect("listening line")
+        .to_string();
+    eprintln!(
+        "server up at {addr} in {:.2} s (rebuild of {bank} rounds included)",
+        started.elapsed().as_secs_f64()
+    );
+
+    let ont = Ontology::paper();
+    let mut rng = Rng(7);
+    let fuse: Vec<Vec<u8>> = (0..512)
+        .map(|_| {
+            let mut rec = record(&mut rng, &ont);
+            rec.truth = None;
+            let body = serde_json::to_vec(&rec).unwrap();
+            let mut req = format!(
+                "POST /v1/fuse HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n",
+                body.len()
+            )
+            .into_bytes();
+            req.extend_from_slice(&body);
+            req
+        })
+        .collect();
+    let health = vec![format!("GET /healthz HTTP/1.1\r\nHost: {addr}\r\n\r\n").into_bytes()];
+
+    let (h_rps, h_lat) = load(&addr, Arc::new(health), clients, secs);
+    let (f_rps, f_lat) = load(&addr, Arc::new(fuse), clients, secs);
+    println!("bank {bank}, d {D}, {clients} keep-alive clients, {secs} s each");
+    println!(
+        "/healthz : {h_rps:>9.0} req/s  p50 {:.3} ms  p99 {:.3} ms",
+        h_lat[0], h_lat[1]
+    );
+    println!(
+        "/v1/fuse : {f_rps:>9.0} req/s  p50 {:.3} ms  p99 {:.3} ms",
+        f_lat[0], f_lat[1]
+    );
+    println!("fuse / healthz = {:.4}", f_rps / h_rps);
+    let _ = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status();
+    let _ = child.wait();
+}
