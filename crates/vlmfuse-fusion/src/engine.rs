@@ -236,11 +236,15 @@ impl Engine {
         if let Some(i) = context.iter().position(|v| !v.is_finite()) {
             return Err(FusionError::NonFinite { index: i });
         }
-        let norm = context.iter().map(|v| v * v).sum::<f64>().sqrt();
-        if !(norm > 0.0) || !norm.is_finite() {
+        // Scale by the largest magnitude first so that squaring cannot overflow (a context of
+        // 1e300s is a direction like any other) nor underflow to a false zero.
+        let max = context.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        if max == 0.0 {
             return Err(FusionError::ZeroContext);
         }
-        Ok(context.iter().map(|v| v / norm).collect())
+        let scaled: Vec<f64> = context.iter().map(|v| v / max).collect();
+        let norm = scaled.iter().map(|v| v * v).sum::<f64>().sqrt();
+        Ok(scaled.iter().map(|v| v / norm).collect())
     }
 
     /// Validates a SPEC §8 record into a round and its optional truth. Nothing is changed.

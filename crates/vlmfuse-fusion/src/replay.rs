@@ -183,7 +183,7 @@ pub fn replay(
                 engine.infer(&pr.round)
             };
             let history = t < n_hist;
-            let learn = pr.truth.is_some() && !(opts.frozen && !history);
+            let learn = pr.truth.is_some() && (history || !opts.frozen);
             let mut phi = None;
             let mut std_error = None;
             if learn {

@@ -2,6 +2,9 @@
 //! player; weights summing to 1; the empty bank giving no signal; each ablation switching off
 //! exactly its part; and validation that changes nothing.
 
+// Indices mirror the formulas of SPEC on purpose: a naive transcription is the point.
+#![allow(clippy::needless_range_loop, clippy::type_complexity)]
+
 use std::collections::BTreeMap;
 use vlmfuse_fusion::{
     reputation_update, Ablations, Engine, FusionConfig, FusionError, LabelledRound, Ontology,
@@ -366,4 +369,7 @@ fn rejected_rounds_name_the_problem_and_change_nothing() {
         assert_eq!(err.kind(), kind, "{err}");
     }
     assert_eq!(before, serde_json::to_string(&e).unwrap());
+    // Huge but finite numbers are a direction like any other.
+    let (r, _) = e.parse(&record(vec![1e300, 1e300, 0.0], &[("a", &[])], None)).unwrap();
+    assert!((r.context[0] - 0.5f64.sqrt()).abs() < 1e-15);
 }

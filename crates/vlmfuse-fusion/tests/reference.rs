@@ -2,6 +2,9 @@
 //! formulas (full sorts, windows recomputed from scratch, Shapley by enumerating permutations,
 //! threshold by brute force), against which the engine must agree to 1e-9.
 
+// Indices mirror the formulas of SPEC on purpose: a naive transcription is the point.
+#![allow(clippy::needless_range_loop, clippy::type_complexity)]
+
 use vlmfuse_fusion::replay::{prepare, replay, ReplayOptions};
 use vlmfuse_fusion::{Ablations, FusionConfig, Ontology, RoundRecord};
 

@@ -71,7 +71,7 @@ impl Synth {
         let norm = x.iter().map(|v| v * v).sum::<f64>().sqrt();
         let x = x.iter().map(|v| v / norm).collect();
         let y: Vec<u8> = (0..self.l)
-            .map(|k| (self.rng.f() < 0.1 + 0.3 * ((c + k) % 5 == 0) as u8 as f64) as u8)
+            .map(|k| (self.rng.f() < 0.1 + 0.3 * (c + k).is_multiple_of(5) as u8 as f64) as u8)
             .collect();
         let present = vec![true; self.n];
         let mut r = vec![0u8; self.n * self.l];

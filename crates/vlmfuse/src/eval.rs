@@ -177,7 +177,7 @@ pub fn evaluate(
     bar.set_message("fusion");
     let (engine, outcomes) = replay(engine, &rounds, &opts, &mut |_| {
         done += 1;
-        if done % 64 == 0 {
+        if done.is_multiple_of(64) {
             bar.set_position(done);
         }
     })
@@ -199,7 +199,7 @@ pub fn evaluate(
         }
         let (_, outs) = replay(fresh, &rounds, &opts, &mut |_| {
             done += 1;
-            if done % 64 == 0 {
+            if done.is_multiple_of(64) {
                 bar.set_position(done);
             }
         })

@@ -161,6 +161,9 @@ fn reliability(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
     Ok(path.to_path_buf())
 }
 
+/// Reads one metric off a row's scores.
+type Metric = fn(&vlmfuse_fusion::metrics::Scores) -> f64;
+
 /// Hamming, micro-F1 and macro-F1 of every row, side by side, like the paper's ablation figure.
 fn ablations(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
     let rows = &run.rows;
@@ -175,7 +178,7 @@ fn ablations(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
         )
         .map_err(err(path))?;
     let panels = root.split_by_breakpoints([520, 747, 974], [] as [u32; 0]);
-    let metrics: [(&str, fn(&vlmfuse_fusion::metrics::Scores) -> f64); 3] = [
+    let metrics: [(&str, Metric); 3] = [
         ("Hamming (lower is better)", |s| s.hamming),
         ("micro-F1", |s| s.micro_f1),
         ("macro-F1", |s| s.macro_f1),

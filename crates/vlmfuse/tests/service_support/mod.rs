@@ -284,7 +284,7 @@ pub fn generate_rounds(n: usize, d: usize, seed: u64) -> Vec<Value> {
                 if next() < 0.1 {
                     continue;
                 }
-                let noise = if (r + c) % 3 == 0 { 0.4 } else { 0.08 };
+                let noise = if (r + c).is_multiple_of(3) { 0.4 } else { 0.08 };
                 let mut labs: Vec<&str> = Vec::new();
                 for (k, lab) in LABELS.iter().enumerate() {
                     let on = truth.contains(lab);
