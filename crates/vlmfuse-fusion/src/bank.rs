@@ -28,6 +28,61 @@ pub struct Bank {
     global: Vec<[u64; 4]>,
     /// Whole-bank positives per label.
     global_y: Vec<u64>,
+    /// Int8 copy of every context (`x ~ scale * q`) for a fast first pass over the bank, with the
+    /// exact norm of each entry's rounding error, which bounds how far the fast similarity can
+    /// be from the exact one (Cauchy-Schwarz). See [`Bank::top_exact`].
+    q8: Vec<i8>,
+    q8_scale: Vec<f32>,
+    q8_err: Vec<f64>,
+}
+
+/// Below this many entries the exact f64 scan is cheap enough on its own.
+const PREFILTER_MIN: usize = 2048;
+
+/// Dot product of an int8 vector with an f32 vector, eight lanes wide so it vectorises.
+#[inline(always)]
+fn dot_i8_body(q: &[i8], x: &[f32]) -> f32 {
+    let mut acc = [0.0f32; 8];
+    let cq = q.chunks_exact(8);
+    let cx = x.chunks_exact(8);
+    let (rq, rx) = (cq.remainder(), cx.remainder());
+    for (a, b) in cq.zip(cx) {
+        for l in 0..8 {
+            acc[l] += a[l] as f32 * b[l];
+        }
+    }
+    let mut s = ((acc[0] + acc[1]) + (acc[2] + acc[3])) + ((acc[4] + acc[5]) + (acc[6] + acc[7]));
+    for (a, b) in rq.iter().zip(rx) {
+        s += *a as f32 * b;
+    }
+    s
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn dot_i8_avx2(q: &[i8], x: &[f32]) -> f32 {
+    dot_i8_body(q, x)
+}
+
+/// Fills `out[j]` with the int8 similarity of every entry (chosen at run time: AVX2 where the
+/// processor has it, the portable loop elsewhere).
+fn scan_i8(q8: &[i8], scale: &[f32], x: &[f32], dim: usize, out: &mut Vec<f32>) {
+    out.clear();
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        // SAFETY: the features this function is compiled for were just detected.
+        out.extend(
+            q8.chunks_exact(dim)
+                .zip(scale)
+                .map(|(q, s)| s * unsafe { dot_i8_avx2(q, x) }),
+        );
+        return;
+    }
+    out.extend(
+        q8.chunks_exact(dim)
+            .zip(scale)
+            .map(|(q, s)| s * dot_i8_body(q, x)),
+    );
 }
 
 /// One neighbour: position in the bank and cosine similarity.
@@ -154,6 +209,7 @@ impl Bank {
         }
         debug_assert_eq!(context.len(), self.dim);
         self.contexts.extend_from_slice(context);
+        self.push_q8(context);
         self.seqs.push(seq);
         for (i, &p) in present.iter().enumerate() {
             self.present.push(p as u8);
@@ -176,6 +232,91 @@ impl Bank {
             self.truths.push(y);
             self.global_y[k] += y as u64;
         }
+    }
+
+    fn push_q8(&mut self, x: &[f64]) {
+        let max = x.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let scale = if max > 0.0 { (max / 127.0) as f32 } else { 1.0 };
+        let s = scale as f64;
+        let mut err = 0.0f64;
+        for &v in x {
+            let q = (v / s).round().clamp(-127.0, 127.0);
+            self.q8.push(q as i8);
+            let e = v - s * q;
+            err += e * e;
+        }
+        self.q8_scale.push(scale);
+        self.q8_err.push(err.sqrt());
+    }
+
+    /// The `m` most similar entries to a unit-norm query, best first, exactly as
+    /// [`Bank::top`] over exact f64 similarities would rank them, but reading a quarter of the
+    /// memory for large banks.
+    ///
+    /// A first pass computes every entry's similarity from its int8 copy, with a rigorous bound
+    /// `b_j` on the difference to the exact cosine: `||x - x~_j||` (stored) plus the query's own
+    /// f32 rounding and the f32 accumulation error. An entry whose upper bound falls below the
+    /// m-th best lower bound cannot be among the m best, so only the survivors (typically a few
+    /// more than m) are re-scored exactly in f64 and ranked with the usual tie rule.
+    pub fn top_exact(&self, x: &[f64], m: usize) -> Vec<Neighbour> {
+        let n = self.len();
+        let m = m.min(n);
+        if m == 0 {
+            return Vec::new();
+        }
+        if n < PREFILTER_MIN || n <= 4 * m || self.q8.len() != n * self.dim {
+            let mut sims = Vec::new();
+            self.similarities(x, &mut sims);
+            return self.top(&sims, m);
+        }
+        let xq: Vec<f32> = x.iter().map(|&v| v as f32).collect();
+        let xq_err = x
+            .iter()
+            .zip(&xq)
+            .map(|(&a, &b)| (a - b as f64).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        let xq_norm = xq.iter().map(|&v| (v as f64).powi(2)).sum::<f64>().sqrt();
+        let mut approx = Vec::with_capacity(n);
+        scan_i8(&self.q8, &self.q8_scale, &xq, self.dim, &mut approx);
+        // f32 arithmetic: each product and each addition rounds by at most u relative, so the
+        // sum is off by at most (d + 2) u * ||x~_j|| * ||xq||; 4d + 16 leaves a wide margin.
+        let u = f32::EPSILON as f64 / 2.0;
+        let acc = (4 * self.dim + 16) as f64 * u;
+        let bound = |j: usize| {
+            let ej = self.q8_err[j];
+            let xn = 1.0 + ej;
+            ej + xq_err * xn + acc * xn * xq_norm + 1e-12
+        };
+        let mut lo: Vec<f64> = (0..n).map(|j| approx[j] as f64 - bound(j)).collect();
+        let (_, &mut cut, _) = lo.select_nth_unstable_by(m - 1, |a, b| b.total_cmp(a));
+        let mut cand: Vec<usize> = Vec::with_capacity(4 * m);
+        for j in 0..n {
+            if approx[j] as f64 + bound(j) >= cut {
+                cand.push(j);
+            }
+        }
+        let sims: Vec<f64> = cand.iter().map(|&j| dot(x, self.context(j))).collect();
+        let mut heap: BinaryHeap<Worst> = BinaryHeap::with_capacity(m + 1);
+        for (&pos, &sim) in cand.iter().zip(&sims) {
+            let seq = self.seqs[pos];
+            if heap.len() < m {
+                heap.push(Worst { sim, seq, pos });
+                continue;
+            }
+            let worst = heap.peek().expect("heap holds m > 0 entries");
+            if sim > worst.sim || (sim == worst.sim && seq < worst.seq) {
+                heap.pop();
+                heap.push(Worst { sim, seq, pos });
+            }
+        }
+        heap.into_sorted_vec()
+            .into_iter()
+            .map(|w| Neighbour {
+                pos: w.pos,
+                sim: w.sim,
+            })
+            .collect()
     }
 
     /// Cosine similarity of a unit-norm query to every entry, in bank order.
@@ -278,6 +419,48 @@ mod tests {
         idx.sort_by(|&a, &c| sims[c].total_cmp(&sims[a]).then(b.seq(a).cmp(&b.seq(c))));
         let got: Vec<usize> = b.top(&sims, 50).iter().map(|n| n.pos).collect();
         assert_eq!(got, idx[..50].to_vec());
+    }
+
+    #[test]
+    fn prefiltered_top_k_equals_exact_top_k() {
+        let mut state = 99u64;
+        let mut rnd = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((state >> 11) as f64 / (1u64 << 53) as f64) - 0.5
+        };
+        let d = 40;
+        let mut b = Bank::new(1, 1);
+        let centres: Vec<Vec<f64>> = (0..5).map(|_| (0..d).map(|_| rnd()).collect()).collect();
+        for s in 0..5000u64 {
+            let c = &centres[(s % 5) as usize];
+            // Every 7th entry duplicates an earlier one exactly: ties must go to the older.
+            let v: Vec<f64> = if s % 7 == 6 {
+                b.context((s / 2) as usize).to_vec()
+            } else {
+                c.iter().map(|x| x + 0.2 * rnd()).collect()
+            };
+            b.push(s, &unit(&v), &[true], &[0], &[0]);
+        }
+        for qi in 0..20 {
+            let q = unit(
+                &centres[qi % 5]
+                    .iter()
+                    .map(|x| x + 0.2 * rnd())
+                    .collect::<Vec<_>>(),
+            );
+            let mut sims = Vec::new();
+            b.similarities(&q, &mut sims);
+            for m in [1, 10, 50, 120] {
+                assert_eq!(b.top_exact(&q, m), b.top(&sims, m), "query {qi} m {m}");
+            }
+        }
+        // A query equal to a stored context finds it (and its older duplicate first).
+        let q = b.context(4000).to_vec();
+        let mut sims = Vec::new();
+        b.similarities(&q, &mut sims);
+        assert_eq!(b.top_exact(&q, 5), b.top(&sims, 5));
     }
 
     #[test]

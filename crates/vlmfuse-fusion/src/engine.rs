@@ -3,7 +3,7 @@
 //! compute and persist an outcome before it touches the in-memory state, and lets `eval` replay
 //! the exact same steps.
 
-use crate::bank::Bank;
+use crate::bank::{Bank, Neighbour};
 use crate::config::FusionConfig;
 use crate::corr::CorrWindow;
 use crate::error::FusionError;
@@ -316,13 +316,27 @@ impl Engine {
 
     /// Infers a round against the state as it stands (SPEC §2–3).
     pub fn infer(&self, round: &Round) -> Inference {
-        let sims = self.similarities(&round.context);
-        self.infer_with_sims(round, &sims)
+        let nb = if self.bank.is_empty() || self.cfg.ablations.no_context {
+            Vec::new()
+        } else {
+            self.bank
+                .top_exact(&round.context, self.cfg.k.max(self.cfg.k_prior))
+        };
+        self.infer_from(round, &nb)
     }
 
     /// Like [`Engine::infer`], with the bank similarities computed elsewhere (a batched GEMM).
     pub fn infer_with_sims(&self, round: &Round, sims: &[f64]) -> Inference {
-        let signals = self.signals(round, sims);
+        let nb = if self.bank.is_empty() || self.cfg.ablations.no_context {
+            Vec::new()
+        } else {
+            self.bank.top(sims, self.cfg.k.max(self.cfg.k_prior))
+        };
+        self.infer_from(round, &nb)
+    }
+
+    fn infer_from(&self, round: &Round, nb: &[Neighbour]) -> Inference {
+        let signals = self.signals(round, nb);
         let q = signals.full_posterior();
         let thresholds = self.threshold.thresholds().to_vec();
         let pred = q
@@ -339,7 +353,7 @@ impl Engine {
         }
     }
 
-    fn signals(&self, round: &Round, sims: &[f64]) -> Signals {
+    fn signals(&self, round: &Round, nb: &[Neighbour]) -> Signals {
         let cfg = &self.cfg;
         let l = self.ontology.len();
         let coalition = round.coalition();
@@ -365,8 +379,6 @@ impl Engine {
                     *v = self.bank.global_positives(k) as f64;
                 }
             } else {
-                let m = cfg.k.max(cfg.k_prior);
-                let nb = self.bank.top(sims, m);
                 let kappa: Vec<f64> = nb.iter().map(|n| n.sim.max(0.0).powf(cfg.tau)).collect();
                 for (idx, n) in nb.iter().enumerate().take(cfg.k) {
                     let kp = kappa[idx];
@@ -403,8 +415,8 @@ impl Engine {
                 theta_neg[idx] = an / (an + bn);
             }
             for k in 0..l {
-                prior[k] = (cfg.prior_alpha + pi_pos[k])
-                    / (cfg.prior_alpha + cfg.prior_beta + pi_mass);
+                prior[k] =
+                    (cfg.prior_alpha + pi_pos[k]) / (cfg.prior_alpha + cfg.prior_beta + pi_mass);
             }
         }
         let mut rho = vec![0.0; p * p * l];

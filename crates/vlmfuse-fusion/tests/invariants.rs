@@ -370,6 +370,8 @@ fn rejected_rounds_name_the_problem_and_change_nothing() {
     }
     assert_eq!(before, serde_json::to_string(&e).unwrap());
     // Huge but finite numbers are a direction like any other.
-    let (r, _) = e.parse(&record(vec![1e300, 1e300, 0.0], &[("a", &[])], None)).unwrap();
+    let (r, _) = e
+        .parse(&record(vec![1e300, 1e300, 0.0], &[("a", &[])], None))
+        .unwrap();
     assert!((r.context[0] - 0.5f64.sqrt()).abs() < 1e-15);
 }
