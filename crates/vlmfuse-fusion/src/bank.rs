@@ -291,8 +291,8 @@ impl Bank {
         let mut lo: Vec<f64> = (0..n).map(|j| approx[j] as f64 - bound(j)).collect();
         let (_, &mut cut, _) = lo.select_nth_unstable_by(m - 1, |a, b| b.total_cmp(a));
         let mut cand: Vec<usize> = Vec::with_capacity(4 * m);
-        for j in 0..n {
-            if approx[j] as f64 + bound(j) >= cut {
+        for (j, &a) in approx.iter().enumerate() {
+            if a as f64 + bound(j) >= cut {
                 cand.push(j);
             }
         }
