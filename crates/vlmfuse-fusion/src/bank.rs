@@ -28,61 +28,56 @@ pub struct Bank {
     global: Vec<[u64; 4]>,
     /// Whole-bank positives per label.
     global_y: Vec<u64>,
-    /// Int8 copy of every context (`x ~ scale * q`) for a fast first pass over the bank, with the
-    /// exact norm of each entry's rounding error, which bounds how far the fast similarity can
-    /// be from the exact one (Cauchy-Schwarz). See [`Bank::top_exact`].
-    q8: Vec<i8>,
-    q8_scale: Vec<f32>,
-    q8_err: Vec<f64>,
+    /// f32 copy of every context for a fast first pass over the bank (half the memory traffic
+    /// of the f64 scan), with the exact norm of each entry's rounding error, which bounds how far
+    /// the fast similarity can be from the exact one (Cauchy-Schwarz). See [`Bank::top_exact`].
+    mirror: Vec<f32>,
+    mirror_err: Vec<f64>,
 }
 
 /// Below this many entries the exact f64 scan is cheap enough on its own.
 const PREFILTER_MIN: usize = 2048;
 
-/// Dot product of an int8 vector with an f32 vector, eight lanes wide so it vectorises.
+/// f32 dot product, sixteen lanes wide so it vectorises.
 #[inline(always)]
-fn dot_i8_body(q: &[i8], x: &[f32]) -> f32 {
-    let mut acc = [0.0f32; 8];
-    let cq = q.chunks_exact(8);
-    let cx = x.chunks_exact(8);
-    let (rq, rx) = (cq.remainder(), cx.remainder());
-    for (a, b) in cq.zip(cx) {
-        for l in 0..8 {
-            acc[l] += a[l] as f32 * b[l];
+fn dot_f32_body(a: &[f32], b: &[f32]) -> f32 {
+    let mut acc = [0.0f32; 16];
+    let ca = a.chunks_exact(16);
+    let cb = b.chunks_exact(16);
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for l in 0..16 {
+            acc[l] += x[l] * y[l];
         }
     }
-    let mut s = ((acc[0] + acc[1]) + (acc[2] + acc[3])) + ((acc[4] + acc[5]) + (acc[6] + acc[7]));
-    for (a, b) in rq.iter().zip(rx) {
-        s += *a as f32 * b;
+    let mut s: f32 = acc.iter().sum();
+    for (x, y) in ra.iter().zip(rb) {
+        s += x * y;
     }
     s
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn dot_i8_avx2(q: &[i8], x: &[f32]) -> f32 {
-    dot_i8_body(q, x)
+unsafe fn dot_f32_avx2(a: &[f32], b: &[f32]) -> f32 {
+    dot_f32_body(a, b)
 }
 
-/// Fills `out[j]` with the int8 similarity of every entry (chosen at run time: AVX2 where the
-/// processor has it, the portable loop elsewhere).
-fn scan_i8(q8: &[i8], scale: &[f32], x: &[f32], dim: usize, out: &mut Vec<f32>) {
+/// Fills `out[j]` with the f32 similarity of every entry (AVX2 + FMA where the processor has
+/// them, chosen at run time; the portable loop elsewhere).
+fn scan_f32(mirror: &[f32], x: &[f32], dim: usize, out: &mut Vec<f32>) {
     out.clear();
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
         // SAFETY: the features this function is compiled for were just detected.
         out.extend(
-            q8.chunks_exact(dim)
-                .zip(scale)
-                .map(|(q, s)| s * unsafe { dot_i8_avx2(q, x) }),
+            mirror
+                .chunks_exact(dim)
+                .map(|c| unsafe { dot_f32_avx2(c, x) }),
         );
         return;
     }
-    out.extend(
-        q8.chunks_exact(dim)
-            .zip(scale)
-            .map(|(q, s)| s * dot_i8_body(q, x)),
-    );
+    out.extend(mirror.chunks_exact(dim).map(|c| dot_f32_body(c, x)));
 }
 
 /// One neighbour: position in the bank and cosine similarity.
@@ -209,7 +204,7 @@ impl Bank {
         }
         debug_assert_eq!(context.len(), self.dim);
         self.contexts.extend_from_slice(context);
-        self.push_q8(context);
+        self.push_mirror(context);
         self.seqs.push(seq);
         for (i, &p) in present.iter().enumerate() {
             self.present.push(p as u8);
@@ -234,28 +229,23 @@ impl Bank {
         }
     }
 
-    fn push_q8(&mut self, x: &[f64]) {
-        let max = x.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        let scale = if max > 0.0 { (max / 127.0) as f32 } else { 1.0 };
-        let s = scale as f64;
+    fn push_mirror(&mut self, x: &[f64]) {
         let mut err = 0.0f64;
         for &v in x {
-            let q = (v / s).round().clamp(-127.0, 127.0);
-            self.q8.push(q as i8);
-            let e = v - s * q;
-            err += e * e;
+            let f = v as f32;
+            self.mirror.push(f);
+            err += (v - f as f64).powi(2);
         }
-        self.q8_scale.push(scale);
-        self.q8_err.push(err.sqrt());
+        self.mirror_err.push(err.sqrt());
     }
 
     /// The `m` most similar entries to a unit-norm query, best first, exactly as
-    /// [`Bank::top`] over exact f64 similarities would rank them, but reading a quarter of the
+    /// [`Bank::top`] over exact f64 similarities would rank them, but reading half the
     /// memory for large banks.
     ///
-    /// A first pass computes every entry's similarity from its int8 copy, with a rigorous bound
+    /// A first pass computes every entry's similarity from its f32 copy, with a rigorous bound
     /// `b_j` on the difference to the exact cosine: `||x - x~_j||` (stored) plus the query's own
-    /// f32 rounding and the f32 accumulation error. An entry whose upper bound falls below the
+    /// f32 rounding and the f32 accumulation error (about 3e-5 at d = 512). An entry whose upper bound falls below the
     /// m-th best lower bound cannot be among the m best, so only the survivors (typically a few
     /// more than m) are re-scored exactly in f64 and ranked with the usual tie rule.
     pub fn top_exact(&self, x: &[f64], m: usize) -> Vec<Neighbour> {
@@ -264,7 +254,7 @@ impl Bank {
         if m == 0 {
             return Vec::new();
         }
-        if n < PREFILTER_MIN || n <= 4 * m || self.q8.len() != n * self.dim {
+        if n < PREFILTER_MIN || n <= 4 * m || self.mirror.len() != n * self.dim {
             let mut sims = Vec::new();
             self.similarities(x, &mut sims);
             return self.top(&sims, m);
@@ -278,13 +268,13 @@ impl Bank {
             .sqrt();
         let xq_norm = xq.iter().map(|&v| (v as f64).powi(2)).sum::<f64>().sqrt();
         let mut approx = Vec::with_capacity(n);
-        scan_i8(&self.q8, &self.q8_scale, &xq, self.dim, &mut approx);
+        scan_f32(&self.mirror, &xq, self.dim, &mut approx);
         // f32 arithmetic: each product and each addition rounds by at most u relative, so the
         // sum is off by at most (d + 2) u * ||x~_j|| * ||xq||; 4d + 16 leaves a wide margin.
         let u = f32::EPSILON as f64 / 2.0;
         let acc = (4 * self.dim + 16) as f64 * u;
         let bound = |j: usize| {
-            let ej = self.q8_err[j];
+            let ej = self.mirror_err[j];
             let xn = 1.0 + ej;
             ej + xq_err * xn + acc * xn * xq_norm + 1e-12
         };
