@@ -1,0 +1,79 @@
+//! One error type for every backend, so that the service can map failures to a reporter state
+//! (failed vs. misconfigured) without knowing which backend produced them.
+
+/// Coarse classification of a [`LabelerError`], stable for metrics and HTTP mapping.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum LabelerErrorKind {
+    /// The label set itself is unusable (empty, duplicate ids).
+    Ontology,
+    /// A configuration value is out of range.
+    Config,
+    /// A model file is missing; fetching the assets fixes it.
+    AssetMissing,
+    /// The model failed to load or run.
+    Model,
+    /// Tokenisation failed.
+    Tokenizer,
+    /// The remote service could not be reached or answered with an HTTP error.
+    Http,
+    /// The remote LLM answered, but not with a valid label set (after the allowed retries).
+    BadAnswer,
+    /// File-system error.
+    Io,
+    /// A worker thread panicked or was cancelled.
+    Internal,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum LabelerError {
+    #[error("invalid ontology: {0}")]
+    Ontology(String),
+    #[error("invalid labeler config: {0}")]
+    Config(String),
+    #[error("asset not found: {0} (run scripts/fetch-assets.sh)")]
+    AssetMissing(String),
+    #[error("model error: {0}")]
+    Model(String),
+    #[error("tokenizer error: {0}")]
+    Tokenizer(String),
+    #[error("http error: {0}")]
+    Http(String),
+    #[error("bad answer from labeler {labeler} after {attempts} attempt(s): {reason}")]
+    BadAnswer {
+        labeler: String,
+        attempts: u32,
+        reason: String,
+    },
+    #[error("io error: {0}")]
+    Io(#[from] std::io::Error),
+    #[error("internal error: {0}")]
+    Internal(String),
+}
+
+impl LabelerError {
+    pub fn kind(&self) -> LabelerErrorKind {
+        match self {
+            LabelerError::Ontology(_) => LabelerErrorKind::Ontology,
+            LabelerError::Config(_) => LabelerErrorKind::Config,
+            LabelerError::AssetMissing(_) => LabelerErrorKind::AssetMissing,
+            LabelerError::Model(_) => LabelerErrorKind::Model,
+            LabelerError::Tokenizer(_) => LabelerErrorKind::Tokenizer,
+            LabelerError::Http(_) => LabelerErrorKind::Http,
+            LabelerError::BadAnswer { .. } => LabelerErrorKind::BadAnswer,
+            LabelerError::Io(_) => LabelerErrorKind::Io,
+            LabelerError::Internal(_) => LabelerErrorKind::Internal,
+        }
+    }
+}
+
+impl From<candle_core::Error> for LabelerError {
+    fn from(e: candle_core::Error) -> Self {
+        LabelerError::Model(e.to_string())
+    }
+}
+
+impl From<tokio::task::JoinError> for LabelerError {
+    fn from(e: tokio::task::JoinError) -> Self {
+        LabelerError::Internal(format!("labeler worker failed: {e}"))
+    }
+}

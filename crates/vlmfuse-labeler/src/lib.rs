@@ -1,0 +1,86 @@
+//! Maps the free text of a VLM answer onto a fixed label ontology.
+//!
+//! The fusion engine only sees binary reports per label, so everything a VLM says must first be
+//! turned into a label set. Three backends trade accuracy for cost and independence:
+//!
+//! * [`EmbeddingLabeler`] (the offline default): sentence embeddings (all-MiniLM-L6-v2) of each
+//!   clause against paraphrase prototypes per label, with explicit negation handling, because
+//!   embeddings alone cannot tell "brake" from "no need to brake".
+//! * [`GgufLabeler`]: a small in-process base LLM (gemma-3-270m) scored with yes/no likelihoods,
+//!   for when no embedding prototypes are written for a custom ontology.
+//! * [`OpenAiLabeler`]: any OpenAI-compatible chat API, strict JSON validated against the ontology.
+
+pub mod assets;
+mod embedding;
+mod error;
+pub mod eval;
+mod gguf;
+mod negation;
+mod ontology;
+mod openai;
+mod sp_tokenizer;
+
+pub use embedding::{ClauseSims, EmbeddingConfig, EmbeddingLabeler};
+pub use error::{LabelerError, LabelerErrorKind};
+pub use gguf::{GgufConfig, GgufLabeler};
+pub use negation::{is_negated, split_clauses};
+pub use ontology::{LabelDef, Ontology};
+pub use openai::{OpenAiConfig, OpenAiLabeler};
+pub use sp_tokenizer::SpTokenizer;
+
+use futures::future::BoxFuture;
+use serde::{Deserialize, Serialize};
+
+/// The score one label got for one text. What the number means depends on the backend
+/// (cosine similarity, yes-probability, 0/1 for an LLM), so only compare scores within a backend.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LabelScore {
+    pub id: String,
+    pub score: f32,
+}
+
+/// Result of labelling one text.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LabelerOutput {
+    /// Ids of the labels that are on, in ontology order.
+    pub labels: Vec<String>,
+    /// One score per ontology label, in ontology order, so callers can re-threshold.
+    pub scores: Vec<LabelScore>,
+}
+
+impl LabelerOutput {
+    /// Builds an output from ontology-ordered scores and decisions; keeps the two in step.
+    pub(crate) fn from_decisions(ontology: &Ontology, scores: &[f32], on: &[bool]) -> Self {
+        let labels = ontology
+            .labels()
+            .iter()
+            .zip(on)
+            .filter(|(_, &b)| b)
+            .map(|(l, _)| l.id.clone())
+            .collect();
+        let scores = ontology
+            .labels()
+            .iter()
+            .zip(scores)
+            .map(|(l, &s)| LabelScore {
+                id: l.id.clone(),
+                score: s,
+            })
+            .collect();
+        Self { labels, scores }
+    }
+
+    pub fn score_of(&self, id: &str) -> Option<f32> {
+        self.scores.iter().find(|s| s.id == id).map(|s| s.score)
+    }
+}
+
+/// A backend that turns one VLM answer into labels.
+///
+/// Async because the remote backend waits on the network and the local ones must not block the
+/// runtime: they run their model work on `spawn_blocking`.
+pub trait Labeler: Send + Sync {
+    /// Stable name for logs and metrics.
+    fn name(&self) -> &str;
+    fn label<'a>(&'a self, text: &'a str) -> BoxFuture<'a, Result<LabelerOutput, LabelerError>>;
+}
