@@ -53,6 +53,180 @@ pub struct Config {
     pub limits: Limits,
     pub fusion: FusionConfig,
     pub ontology: Ontology,
+    /// Clip ingestion for /v1/infer.
+    pub media: MediaConfig,
+    /// The context embedder; absent: /v1/infer answers 503 (a context is never invented).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub embedder: Option<EmbedderConfig>,
+    /// The reporters /v1/infer runs; each `name` must be one of `reporters`.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub reporter: Vec<ReporterEntry>,
+    /// Text -> labels for /v1/infer.
+    pub labeler: LabelerConfig,
+}
+
+/// `[media]`: what an upload may be and how it is sampled.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MediaConfig {
+    /// Frames sampled uniformly per clip.
+    pub frames: usize,
+    /// Frames are scaled so their shorter side is this many pixels (0: the clip's own size).
+    pub frame_short_side: u32,
+    /// Most `video` parts in one request.
+    pub max_clips: usize,
+    /// Bytes per clip, enforced while streaming the upload (413 above).
+    pub max_bytes: u64,
+    pub max_duration_s: f64,
+    pub max_width: u32,
+    pub max_height: u32,
+    /// Seconds one /v1/infer request may take (replaces limits.request_timeout_s there).
+    pub request_timeout_s: f64,
+    /// Where uploads are spooled; unset: the system temporary directory.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub temp_dir: Option<PathBuf>,
+}
+
+impl Default for MediaConfig {
+    fn default() -> Self {
+        let l = vlmfuse_media::MediaLimits::default();
+        Self {
+            frames: 8,
+            frame_short_side: 448,
+            max_clips: 4,
+            max_bytes: l.max_bytes,
+            max_duration_s: l.max_duration_s,
+            max_width: l.max_width,
+            max_height: l.max_height,
+            request_timeout_s: 300.0,
+            temp_dir: None,
+        }
+    }
+}
+
+impl MediaConfig {
+    pub fn limits(&self) -> vlmfuse_media::MediaLimits {
+        vlmfuse_media::MediaLimits {
+            max_bytes: self.max_bytes,
+            max_duration_s: self.max_duration_s,
+            max_width: self.max_width,
+            max_height: self.max_height,
+        }
+    }
+
+    pub fn sample_options(&self) -> vlmfuse_media::SampleOptions {
+        vlmfuse_media::SampleOptions {
+            frames: self.frames,
+            size: if self.frame_short_side == 0 {
+                vlmfuse_media::FrameSize::Native
+            } else {
+                vlmfuse_media::FrameSize::ShortSide(self.frame_short_side)
+            },
+        }
+    }
+}
+
+/// `[embedder]`: a CLIP image tower.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EmbedderConfig {
+    /// `{ path = "/models/clip" }` or `{ hub = "openai/clip-vit-base-patch32", revision = "main" }`.
+    pub weights: vlmfuse_models::WeightSource,
+    /// `"cpu"`, `"cuda"` or `"cuda:N"` (CUDA needs the `cuda` build feature).
+    #[serde(default = "cpu")]
+    pub device: String,
+}
+
+fn cpu() -> String {
+    "cpu".into()
+}
+
+/// One `[[reporter]]`: a backend (`kind`) plus the round's timeout for it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ReporterEntry {
+    /// Seconds this reporter may take in a round (retries included) before it is left out.
+    #[serde(default = "default_reporter_timeout")]
+    pub round_timeout_s: f64,
+    #[serde(flatten)]
+    pub backend: ReporterBackend,
+}
+
+fn default_reporter_timeout() -> f64 {
+    120.0
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase")]
+pub enum ReporterBackend {
+    /// Any OpenAI-compatible chat-completions server (vLLM, SGLang, llama.cpp, ...).
+    Openai(vlmfuse_models::OpenAiReporterConfig),
+    /// In-process Qwen3-VL on candle.
+    Candle(vlmfuse_models::CandleVlmConfig),
+}
+
+impl ReporterEntry {
+    pub fn name(&self) -> String {
+        match &self.backend {
+            ReporterBackend::Openai(c) => c.name.clone().unwrap_or_else(|| c.model.clone()),
+            ReporterBackend::Candle(c) => c.name.clone(),
+        }
+    }
+}
+
+/// `[labeler]`: which backend maps reporter text to ontology labels.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LabelerConfig {
+    /// `"embedding"` (offline default, all-MiniLM-L6-v2), `"openai"` or `"gguf"`.
+    pub kind: LabelerKind,
+    /// embedding: the MiniLM directory; unset: `$VLMFUSE_ASSETS/minilm` (scripts/fetch-assets.sh).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub model_dir: Option<PathBuf>,
+    /// gguf: the model file; unset: the fetched gemma-3-270m.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub model_path: Option<PathBuf>,
+    /// embedding/gguf: decision threshold; unset: the backend's tuned default.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub threshold: Option<f32>,
+    /// openai: server base URL and model.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub base_url: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub model: Option<String>,
+    /// openai: name of the environment variable holding the API key.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub api_key_env: Option<String>,
+    /// openai: ask for `response_format: json_object`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub json_mode: Option<bool>,
+    /// openai: seconds per request.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub timeout_s: Option<f64>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LabelerKind {
+    #[default]
+    Embedding,
+    Openai,
+    Gguf,
+}
+
+impl Default for LabelerConfig {
+    fn default() -> Self {
+        Self {
+            kind: LabelerKind::Embedding,
+            model_dir: None,
+            model_path: None,
+            threshold: None,
+            base_url: None,
+            model: None,
+            api_key_env: None,
+            json_mode: None,
+            timeout_s: None,
+        }
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -94,6 +268,10 @@ impl Default for Config {
             limits: Limits::default(),
             fusion: FusionConfig::default(),
             ontology: Ontology::paper(),
+            media: MediaConfig::default(),
+            embedder: None,
+            reporter: Vec::new(),
+            labeler: LabelerConfig::default(),
         }
     }
 }
@@ -165,6 +343,7 @@ impl Config {
         if let Some(v) = &args.reporters {
             cfg.reporters = v.iter().map(|s| s.trim().to_string()).collect();
         }
+        cfg.apply_env(|k| std::env::var(k).ok())?;
         if let Ok(v) = std::env::var("VLMFUSE_DEBUG_FUSE_DELAY_MS") {
             cfg.limits.debug_fuse_delay_ms = v
                 .parse()
@@ -172,6 +351,48 @@ impl Config {
         }
         cfg.validate()?;
         Ok(cfg)
+    }
+
+    /// Scalar fields of the clip pipeline from the environment (`VLMFUSE_MEDIA_FRAMES`, ...).
+    fn apply_env(&mut self, get: impl Fn(&str) -> Option<String>) -> Result<(), String> {
+        fn num<T: std::str::FromStr>(k: &str, v: &str) -> Result<T, String> {
+            v.trim()
+                .parse()
+                .map_err(|_| format!("{k}={v:?} is not a valid number"))
+        }
+        let m = &mut self.media;
+        let get = |k: &str| get(k).filter(|v| !v.is_empty()).map(|v| (k.to_string(), v));
+        if let Some((k, v)) = get("VLMFUSE_MEDIA_FRAMES") {
+            m.frames = num(&k, &v)?;
+        }
+        if let Some((k, v)) = get("VLMFUSE_MEDIA_MAX_CLIPS") {
+            m.max_clips = num(&k, &v)?;
+        }
+        if let Some((k, v)) = get("VLMFUSE_MEDIA_MAX_BYTES") {
+            m.max_bytes = num(&k, &v)?;
+        }
+        if let Some((k, v)) = get("VLMFUSE_MEDIA_MAX_DURATION_S") {
+            m.max_duration_s = num(&k, &v)?;
+        }
+        if let Some((k, v)) = get("VLMFUSE_MEDIA_REQUEST_TIMEOUT_S") {
+            m.request_timeout_s = num(&k, &v)?;
+        }
+        if let Some((_, v)) = get("VLMFUSE_MEDIA_TEMP_DIR") {
+            m.temp_dir = Some(v.into());
+        }
+        if let Some((_, v)) = get("VLMFUSE_EMBEDDER_DEVICE") {
+            if let Some(e) = &mut self.embedder {
+                e.device = v;
+            }
+        }
+        if let Some((k, v)) = get("VLMFUSE_LABELER_KIND") {
+            self.labeler.kind = serde_json::from_value(serde_json::Value::String(v.clone()))
+                .map_err(|_| format!("{k}={v:?}: expected embedding, openai or gguf"))?;
+        }
+        if let Some((_, v)) = get("VLMFUSE_LABELER_MODEL_DIR") {
+            self.labeler.model_dir = Some(v.into());
+        }
+        Ok(())
     }
 
     /// Refuses what would only fail later, at the first request.
@@ -190,6 +411,37 @@ impl Config {
             return Err("limits.request_timeout_s must be a positive number".into());
         }
         self.fusion.validate()?;
+        let m = &self.media;
+        if m.frames == 0 || m.frames > vlmfuse_media::MAX_SAMPLE_FRAMES {
+            return Err(format!(
+                "media.frames must be 1..={}",
+                vlmfuse_media::MAX_SAMPLE_FRAMES
+            ));
+        }
+        if m.max_clips == 0 || m.max_bytes == 0 {
+            return Err("media.max_clips and media.max_bytes must be at least 1".into());
+        }
+        if !(m.request_timeout_s.is_finite() && m.request_timeout_s > 0.0) {
+            return Err("media.request_timeout_s must be a positive number".into());
+        }
+        let mut seen = std::collections::BTreeSet::new();
+        for r in &self.reporter {
+            let name = r.name();
+            if !self.reporters.contains(&name) {
+                return Err(format!(
+                    "[[reporter]] {name:?} is not in `reporters` ({:?})",
+                    self.reporters
+                ));
+            }
+            if !seen.insert(name.clone()) {
+                return Err(format!("[[reporter]] {name:?} is configured twice"));
+            }
+            if !(r.round_timeout_s.is_finite() && r.round_timeout_s > 0.0) {
+                return Err(format!(
+                    "[[reporter]] {name:?}: round_timeout_s must be a positive number"
+                ));
+            }
+        }
         Ontology::new(self.ontology.labels().to_vec())?;
         Ok(())
     }
@@ -249,5 +501,45 @@ mod tests {
         assert!(Config::from_toml("reporter = [\"a\"]").is_err());
         assert!(Config::from_toml("[fusion]\nkk = 3").is_err());
         assert!(Config::from_toml("[server]\nlisten = \"nowhere\"").is_err());
+    }
+
+    /// The commented examples of config/default.toml, uncommented, are a valid config.
+    #[test]
+    fn the_commented_pipeline_examples_parse() {
+        let mut text = String::new();
+        let mut on = false;
+        for line in SHIPPED.lines() {
+            if line.starts_with("# [embedder]") {
+                on = true;
+            }
+            if line.starts_with("# Text -> labels") {
+                on = false;
+            }
+            if on {
+                if let Some(rest) = line.strip_prefix("# ") {
+                    let toml_line = rest.starts_with('[') || rest.contains(" = ");
+                    if toml_line && !rest.starts_with('#') {
+                        text.push_str(rest);
+                        text.push('\n');
+                    }
+                }
+            }
+        }
+        let text = format!("reporters = [\"vlaad\", \"videollama2\"]\n{text}");
+        let cfg = Config::from_toml(&text).unwrap_or_else(|e| panic!("{e}\n{text}"));
+        assert_eq!(cfg.reporter.len(), 2);
+        assert_eq!(cfg.reporter[0].name(), "videollama2");
+        assert_eq!(cfg.reporter[0].round_timeout_s, 180.0);
+        match &cfg.reporter[1].backend {
+            ReporterBackend::Candle(c) => {
+                assert_eq!(c.device, "cuda:1");
+                assert!(c.adapter.is_some());
+            }
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(cfg.embedder.unwrap().device, "cpu");
+        // A reporter whose name is not in `reporters` is refused.
+        let bad = text.replace("name = \"vlaad\"", "name = \"nobody\"");
+        assert!(Config::from_toml(&bad).is_err());
     }
 }

@@ -42,6 +42,9 @@ pub enum ApiError {
         message: String,
         not_ready: Vec<String>,
     },
+    /// Every reporter of a /v1/infer round failed; nothing was stored.
+    #[error("every reporter failed: {}", fmt_failed(.0))]
+    ReportersFailed(Vec<(String, String)>),
     #[error("no route {0}")]
     NotFound(String),
     #[error("method not allowed on this route")]
@@ -56,6 +59,16 @@ struct Body<'a> {
     kind: &'a str,
     #[serde(skip_serializing_if = "Option::is_none")]
     not_ready: Option<&'a [String]>,
+    /// Reporter name -> why it failed (kind `reporters_failed`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    failed: Option<serde_json::Map<String, serde_json::Value>>,
+}
+
+fn fmt_failed(f: &[(String, String)]) -> String {
+    f.iter()
+        .map(|(n, why)| format!("{n}: {why}"))
+        .collect::<Vec<_>>()
+        .join("; ")
 }
 
 impl ApiError {
@@ -70,7 +83,9 @@ impl ApiError {
             ApiError::Conflict(_) => StatusCode::CONFLICT,
             ApiError::Unauthorized => StatusCode::UNAUTHORIZED,
             ApiError::Overloaded(_) => StatusCode::TOO_MANY_REQUESTS,
-            ApiError::Timeout(_) | ApiError::NotReady { .. } => StatusCode::SERVICE_UNAVAILABLE,
+            ApiError::Timeout(_) | ApiError::NotReady { .. } | ApiError::ReportersFailed(_) => {
+                StatusCode::SERVICE_UNAVAILABLE
+            }
             ApiError::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
         }
     }
@@ -88,6 +103,7 @@ impl ApiError {
             ApiError::Overloaded(_) => "overloaded",
             ApiError::Timeout(_) => "timeout",
             ApiError::NotReady { .. } => "not_ready",
+            ApiError::ReportersFailed(_) => "reporters_failed",
             ApiError::NotFound(_) => "not_found",
             ApiError::MethodNotAllowed => "method_not_allowed",
             ApiError::Internal(_) => "internal",
@@ -118,17 +134,31 @@ impl IntoResponse for ApiError {
         let status = self.status();
         let kind = self.kind();
         metrics::counter!("vlmfuse_rejected_requests_total", "kind" => kind).increment(1);
-        if status.is_server_error() && !matches!(self, ApiError::NotReady { .. }) {
+        if status.is_server_error()
+            && !matches!(
+                self,
+                ApiError::NotReady { .. } | ApiError::ReportersFailed(_)
+            )
+        {
             tracing::error!(kind, "{self}");
         }
         let not_ready = match &self {
             ApiError::NotReady { not_ready, .. } => Some(not_ready.as_slice()),
             _ => None,
         };
+        let failed = match &self {
+            ApiError::ReportersFailed(f) => Some(
+                f.iter()
+                    .map(|(n, why)| (n.clone(), serde_json::Value::String(why.clone())))
+                    .collect(),
+            ),
+            _ => None,
+        };
         let body = Body {
             error: self.to_string(),
             kind,
             not_ready,
+            failed,
         };
         let mut resp = (status, axum::Json(body)).into_response();
         if matches!(self, ApiError::Unauthorized) {

@@ -139,6 +139,30 @@ pub async fn fuse(
         .await;
     }
     let (records, batch) = parse_fuse_body(body, st.cfg.limits.max_batch_rounds)?;
+    let records = records
+        .into_iter()
+        .map(|rec| {
+            let request = serde_json::json!({ "id": rec.id, "reports": rec.reports });
+            (rec, request)
+        })
+        .collect();
+    let rounds = fuse_and_store(&st, records, batch).await?;
+    Ok(if batch {
+        axum::Json(FuseBatchOut { rounds }).into_response()
+    } else {
+        axum::Json(rounds.into_iter().next().expect("one round")).into_response()
+    })
+}
+
+/// The one store/fuse path of /v1/fuse and /v1/infer: validates every record, infers each
+/// against the state as it stands (off the async threads, under the read lock), then hands the
+/// rounds to the writer and returns them numbered. `request` is what the database keeps with the
+/// round. All or nothing.
+pub(super) async fn fuse_and_store(
+    st: &AppState,
+    records: Vec<(RoundRecord, Value)>,
+    batch: bool,
+) -> Result<Vec<FuseOut>, ApiError> {
     let shared = st.shared.clone();
     // Inference is CPU work (about a millisecond at a 10k bank): off the async threads, under a
     // read lock only, so concurrent fuse requests run in parallel and feedback waits for none.
@@ -146,7 +170,7 @@ pub async fn fuse(
         let eng = shared.engine.read().unwrap_or_else(|e| e.into_inner());
         let mut dim = eng.dim();
         let mut parsed = Vec::with_capacity(records.len());
-        for (idx, rec) in records.into_iter().enumerate() {
+        for (idx, (rec, request)) in records.into_iter().enumerate() {
             let at = |e: ApiError| -> ApiError {
                 if batch {
                     match e {
@@ -172,20 +196,20 @@ pub async fn fuse(
             }
             let (round, _) = eng.parse(&rec).map_err(|e| at(e.into()))?;
             dim.get_or_insert(round.context.len());
-            parsed.push((rec, round));
+            parsed.push((rec, request, round));
         }
         let infer_start = Instant::now();
         let mut outs = Vec::with_capacity(parsed.len());
         let mut new_rounds = Vec::with_capacity(parsed.len());
         let created_ms = vlmfuse_store::timestamp_ms();
-        for (rec, round) in parsed {
+        for (rec, request, round) in parsed {
             let inf = eng.infer(&round);
             // The round id is set once the writer has numbered the round.
             outs.push(fuse_out(&eng, 0, rec.id.clone(), &inf));
             new_rounds.push(NewRound {
                 round,
                 inference: inf,
-                request: serde_json::json!({ "id": rec.id, "reports": rec.reports }),
+                request,
                 created_ms,
             });
         }
@@ -209,11 +233,7 @@ pub async fn fuse(
     for (i, r) in rounds.iter_mut().enumerate() {
         r.round_id = round_id(first + i as u64);
     }
-    Ok(if batch {
-        axum::Json(FuseBatchOut { rounds }).into_response()
-    } else {
-        axum::Json(rounds.into_iter().next().expect("one round")).into_response()
-    })
+    Ok(rounds)
 }
 
 /// Splits the body into records, refusing truth (feedback has its own route, so a round cannot
@@ -445,9 +465,23 @@ pub async fn healthz() -> Response {
 pub async fn readyz(State(st): State<AppState>) -> Result<Response, ApiError> {
     let not_ready = st.not_ready();
     if not_ready.is_empty() {
+        let p = &st.pipeline;
+        let mut components = vec!["store".to_string(), "engine".to_string()];
+        if p.embedder.is_some() {
+            components.push("embedder".into());
+        }
+        for r in &p.reporters {
+            components.push(format!("reporter {}", r.reporter.name()));
+        }
+        if p.labeler.is_some() {
+            components.push(format!("labeler {}", p.labeler_name));
+        }
+        let blockers = p.infer_blockers();
         Ok(axum::Json(serde_json::json!({
             "status": "ready",
-            "components": ["store", "engine"],
+            "components": components,
+            // /v1/infer needs an embedder, reporters and a labeler; what the config leaves out.
+            "infer": {"ready": blockers.is_empty(), "not_ready": blockers},
         }))
         .into_response())
     } else {
@@ -480,19 +514,6 @@ pub async fn openapi() -> Response {
         OPENAPI,
     )
         .into_response()
-}
-
-/// `POST /v1/infer`: clip ingestion arrives with issue 4; until then the route says so.
-pub async fn infer() -> Result<Response, ApiError> {
-    Err(ApiError::NotReady {
-        message: "clip ingestion is not configured: this build has no embedder or reporter \
-                  backends (issue 4); send reports and a context to POST /v1/fuse instead"
-            .into(),
-        not_ready: vec![
-            "embedder: not configured".into(),
-            "reporters: not configured".into(),
-        ],
-    })
 }
 
 pub async fn not_found(req: Request) -> ApiError {

@@ -6,6 +6,8 @@
 
 mod error;
 mod handlers;
+mod infer;
+mod pipeline;
 mod writer;
 
 use crate::config::Config;
@@ -34,6 +36,7 @@ pub struct AppState {
     cfg: Arc<Config>,
     metrics: PrometheusHandle,
     limiter: Arc<Semaphore>,
+    pipeline: Arc<pipeline::Pipeline>,
 }
 
 impl AppState {
@@ -50,8 +53,8 @@ impl AppState {
         })
     }
 
-    /// Components that are not ready, each with its reason. Clip ingestion (issue 4) is not a
-    /// configured component yet, so it is not listed.
+    /// Components that are configured but not ready, each with its reason (a failed load of
+    /// the embedder, a reporter or the labeler is listed here).
     fn not_ready(&self) -> Vec<String> {
         let mut out = Vec::new();
         if self.shared.broken.load(Ordering::SeqCst) {
@@ -64,6 +67,7 @@ impl AppState {
                 .unwrap_or_default();
             out.push(format!("store: {why}"));
         }
+        out.extend(self.pipeline.failed.iter().cloned());
         out
     }
 }
@@ -101,7 +105,7 @@ pub fn routes() -> Vec<RouteDef> {
     };
     vec![
         r("post", "/v1/fuse", Access::Write, post(h::fuse)),
-        r("post", "/v1/infer", Access::Write, post(h::infer)),
+        r("post", "/v1/infer", Access::Write, post(infer::infer)),
         r("post", "/v1/feedback", Access::Write, post(h::feedback)),
         r("get", "/v1/state", Access::Limited, get(h::state)),
         r("get", "/v1/ontology", Access::Limited, get(h::ontology)),
@@ -123,6 +127,11 @@ pub fn router(state: AppState) -> Router {
         }
         if def.access == Access::Write {
             handler = handler.route_layer(from_fn_with_state(state.clone(), auth));
+        }
+        if def.path == "/v1/infer" {
+            // Uploads are streamed to disk with their own limits (media.max_bytes per clip,
+            // media.max_clips), so the JSON body limit does not apply.
+            handler = handler.layer(DefaultBodyLimit::disable());
         }
         app = app.route(def.path, handler);
     }
@@ -168,7 +177,11 @@ fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
 }
 
 async fn timeout(State(st): State<AppState>, req: Request, next: Next) -> Response {
-    let secs = st.cfg.limits.request_timeout_s;
+    let secs = if req.uri().path() == "/v1/infer" {
+        st.cfg.media.request_timeout_s
+    } else {
+        st.cfg.limits.request_timeout_s
+    };
     match tokio::time::timeout(Duration::from_secs_f64(secs), next.run(req)).await {
         Ok(resp) => resp,
         Err(_) => ApiError::Timeout(secs).into_response(),
@@ -235,6 +248,15 @@ fn install_metrics() -> Result<PrometheusHandle, String> {
         "Requests refused with 429 at the concurrency limit"
     );
     describe_counter!("vlmfuse_rounds_stored_total", "Rounds fused and committed");
+    describe_histogram!(
+        "vlmfuse_stage_seconds",
+        Unit::Seconds,
+        "Time of each /v1/infer stage per clip: upload, decode, embed, reporters, label, fuse"
+    );
+    describe_counter!(
+        "vlmfuse_reporter_failures_total",
+        "Reporters left out of a /v1/infer round, by reporter and stage (run, label)"
+    );
     Ok(handle)
 }
 
@@ -302,6 +324,19 @@ pub fn main(args: ServeArgs) -> Result<(), String> {
         broken: AtomicBool::new(false),
         broken_reason: Mutex::new(None),
     });
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .map_err(|e| e.to_string())?;
+    let start = Instant::now();
+    let pipeline = rt.block_on(pipeline::Pipeline::load(&cfg));
+    tracing::info!(
+        embedder = pipeline.embedder.is_some(),
+        reporters = pipeline.reporters.len(),
+        labeler = %pipeline.labeler_name,
+        secs = start.elapsed().as_secs_f64(),
+        "clip pipeline loaded"
+    );
     let (tx, writer) = writer::spawn(store, shared.clone()).map_err(|e| e.to_string())?;
     let state = AppState {
         shared,
@@ -309,12 +344,9 @@ pub fn main(args: ServeArgs) -> Result<(), String> {
         limiter: Arc::new(Semaphore::new(cfg.limits.concurrency_limit)),
         cfg: Arc::new(cfg),
         metrics,
+        pipeline: Arc::new(pipeline),
     };
 
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-        .map_err(|e| e.to_string())?;
     rt.block_on(async move {
         let listener = tokio::net::TcpListener::bind(addr)
             .await
