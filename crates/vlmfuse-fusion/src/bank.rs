@@ -286,9 +286,14 @@ impl Bank {
                 cand.push(j);
             }
         }
-        let sims: Vec<f64> = cand.iter().map(|&j| dot(x, self.context(j))).collect();
+        self.select(cand.into_iter().map(|j| (j, dot(x, self.context(j)))), m)
+    }
+
+    /// Keeps the `m` best `(position, similarity)` pairs, best first: higher similarity wins, and
+    /// at equal similarity the older round (smaller sequence).
+    fn select(&self, items: impl Iterator<Item = (usize, f64)>, m: usize) -> Vec<Neighbour> {
         let mut heap: BinaryHeap<Worst> = BinaryHeap::with_capacity(m + 1);
-        for (&pos, &sim) in cand.iter().zip(&sims) {
+        for (pos, sim) in items {
             let seq = self.seqs[pos];
             if heap.len() < m {
                 heap.push(Worst { sim, seq, pos });
@@ -300,6 +305,7 @@ impl Bank {
                 heap.push(Worst { sim, seq, pos });
             }
         }
+        // into_sorted_vec is ascending in "worseness": best first.
         heap.into_sorted_vec()
             .into_iter()
             .map(|w| Neighbour {
@@ -327,28 +333,7 @@ impl Bank {
         if m == 0 {
             return Vec::new();
         }
-        let mut heap: BinaryHeap<Worst> = BinaryHeap::with_capacity(m + 1);
-        for (pos, &sim) in sims.iter().enumerate() {
-            let seq = self.seqs[pos];
-            if heap.len() < m {
-                heap.push(Worst { sim, seq, pos });
-                continue;
-            }
-            let worst = heap.peek().expect("heap holds m > 0 entries");
-            let better = sim > worst.sim || (sim == worst.sim && seq < worst.seq);
-            if better {
-                heap.pop();
-                heap.push(Worst { sim, seq, pos });
-            }
-        }
-        // into_sorted_vec is ascending in "worseness": best first.
-        heap.into_sorted_vec()
-            .into_iter()
-            .map(|w| Neighbour {
-                pos: w.pos,
-                sim: w.sim,
-            })
-            .collect()
+        self.select(sims.iter().copied().enumerate(), m)
     }
 }
 
