@@ -230,22 +230,7 @@ pub fn parse_response(raw: &[u8]) -> std::io::Result<Resp> {
     })
 }
 
-pub const LABELS: [&str; 14] = [
-    "turn_left",
-    "turn_right",
-    "brake",
-    "accelerate",
-    "stop",
-    "traffic_light_ahead",
-    "junction_ahead",
-    "pedestrian_crossing_ahead",
-    "merge",
-    "maintain_safe_distance",
-    "check_blind_spot",
-    "adjust_speed_due_to_weather",
-    "yield_to_traffic",
-    "drive_as_normal",
-];
+pub use vlmfuse_fusion::ontology::PAPER_LABELS as LABELS;
 
 pub const REPORTERS: [&str; 3] = ["vlaad", "videollama2", "videollava"];
 
