@@ -529,12 +529,11 @@ impl Inner {
     fn label(&self, text: &str) -> Result<LabelerOutput, LabelerError> {
         let cs = self.clause_sims(text)?;
         let scores = cs.scores(self.ontology.len(), self.margin);
-        let on: Vec<bool> = scores
-            .iter()
-            .zip(&self.thresholds)
-            .map(|(s, t)| s >= t)
-            .collect();
-        Ok(LabelerOutput::from_decisions(&self.ontology, &scores, &on))
+        Ok(LabelerOutput::thresholded(
+            &self.ontology,
+            &scores,
+            &self.thresholds,
+        ))
     }
 }
 

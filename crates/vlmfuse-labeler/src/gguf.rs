@@ -229,12 +229,11 @@ impl Inner {
             .zip(&self.calib)
             .map(|(r, c)| 1.0 / (1.0 + (-(r - c)).exp()))
             .collect();
-        let on: Vec<bool> = scores
-            .iter()
-            .zip(&self.thresholds)
-            .map(|(s, t)| s >= t)
-            .collect();
-        Ok(LabelerOutput::from_decisions(&self.ontology, &scores, &on))
+        Ok(LabelerOutput::thresholded(
+            &self.ontology,
+            &scores,
+            &self.thresholds,
+        ))
     }
 }
 

@@ -70,6 +70,13 @@ impl LabelerOutput {
         Self { labels, scores }
     }
 
+    /// Builds an output from ontology-ordered scores, a label being on when its score reaches its
+    /// threshold (the rule the embedding and GGUF labelers share).
+    pub(crate) fn thresholded(ontology: &Ontology, scores: &[f32], thresholds: &[f32]) -> Self {
+        let on: Vec<bool> = scores.iter().zip(thresholds).map(|(s, t)| s >= t).collect();
+        Self::from_decisions(ontology, scores, &on)
+    }
+
     pub fn score_of(&self, id: &str) -> Option<f32> {
         self.scores.iter().find(|s| s.id == id).map(|s| s.score)
     }
