@@ -3,19 +3,13 @@
 // Indices mirror the formulas of SPEC on purpose: a naive transcription is the point.
 #![allow(clippy::needless_range_loop, clippy::type_complexity)]
 
-use std::collections::BTreeMap;
+mod common;
+
+use common::record;
 use vlmfuse_fusion::{Engine, FusionConfig, LabelledRound, Ontology, RoundRecord};
 
 fn rec(ctx: Vec<f64>, reports: &[(&str, &[&str])]) -> RoundRecord {
-    RoundRecord {
-        id: None,
-        context: ctx,
-        reports: reports
-            .iter()
-            .map(|(n, l)| (n.to_string(), l.iter().map(|s| s.to_string()).collect()))
-            .collect::<BTreeMap<_, _>>(),
-        truth: None,
-    }
+    record(ctx, reports, None)
 }
 
 fn learn(e: &mut Engine, seq: u64, ctx: Vec<f64>, reports: &[(&str, &[&str])], truth: &[&str]) {

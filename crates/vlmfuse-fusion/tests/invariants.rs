@@ -5,22 +5,13 @@
 // Indices mirror the formulas of SPEC on purpose: a naive transcription is the point.
 #![allow(clippy::needless_range_loop, clippy::type_complexity)]
 
-use std::collections::BTreeMap;
+mod common;
+
+use common::{record, Lcg};
 use vlmfuse_fusion::{
     reputation_update, Ablations, Engine, FusionConfig, FusionError, LabelledRound, Ontology,
     Round, RoundRecord, ShapleyMethod, Signals,
 };
-
-struct Lcg(u64);
-impl Lcg {
-    fn f(&mut self) -> f64 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (self.0 >> 11) as f64 / (1u64 << 53) as f64
-    }
-}
 
 fn random_signals(g: &mut Lcg, p: usize, l: usize) -> Signals {
     let mut rho = vec![0.0; p * p * l];
@@ -185,18 +176,6 @@ fn reputations_stay_a_distribution() {
 
 fn names() -> Vec<String> {
     vec!["a".into(), "b".into(), "c".into()]
-}
-
-fn record(ctx: Vec<f64>, reports: &[(&str, &[&str])], truth: Option<&[&str]>) -> RoundRecord {
-    RoundRecord {
-        id: None,
-        context: ctx,
-        reports: reports
-            .iter()
-            .map(|(n, l)| (n.to_string(), l.iter().map(|s| s.to_string()).collect()))
-            .collect::<BTreeMap<_, _>>(),
-        truth: truth.map(|t| t.iter().map(|s| s.to_string()).collect()),
-    }
 }
 
 #[test]

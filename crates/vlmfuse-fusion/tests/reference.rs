@@ -5,6 +5,9 @@
 // Indices mirror the formulas of SPEC on purpose: a naive transcription is the point.
 #![allow(clippy::needless_range_loop, clippy::type_complexity)]
 
+mod common;
+
+use common::Lcg;
 use vlmfuse_fusion::replay::{prepare, replay, ReplayOptions};
 use vlmfuse_fusion::{Ablations, FusionConfig, Ontology, RoundRecord};
 
@@ -316,17 +319,6 @@ fn permutations(v: &[usize]) -> Vec<Vec<usize>> {
         }
     }
     out
-}
-
-struct Lcg(u64);
-impl Lcg {
-    fn f(&mut self) -> f64 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (self.0 >> 11) as f64 / (1u64 << 53) as f64
-    }
 }
 
 /// Random rounds with cluster structure, reporters of different quality, missing reporters and
