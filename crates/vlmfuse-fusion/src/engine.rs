@@ -307,13 +307,6 @@ impl Engine {
         Ok(y)
     }
 
-    /// Similarities of a unit-norm context to the bank, in bank order.
-    pub fn similarities(&self, context: &[f64]) -> Vec<f64> {
-        let mut s = Vec::new();
-        self.bank.similarities(context, &mut s);
-        s
-    }
-
     /// Infers a round against the state as it stands (SPEC §2–3).
     pub fn infer(&self, round: &Round) -> Inference {
         let nb = if self.bank.is_empty() || self.cfg.ablations.no_context {

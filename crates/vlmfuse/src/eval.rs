@@ -191,9 +191,8 @@ pub fn evaluate(
         bar.set_message(name.clone());
         let mut c = cfg.clone();
         c.ablations = Ablations::from_name(name).expect("checked above");
-        let fresh = Engine::new(c, ontology.clone(), engine.reporters().to_vec())
+        let mut fresh = Engine::new(c, ontology.clone(), engine.reporters().to_vec())
             .map_err(|e| e.to_string())?;
-        let mut fresh = fresh;
         if let Some(d) = engine.dim() {
             fresh.fix_dim(d).map_err(|e| e.to_string())?;
         }
