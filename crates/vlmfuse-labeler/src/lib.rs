@@ -12,6 +12,7 @@
 
 pub mod assets;
 mod embedding;
+mod encoder;
 mod error;
 pub mod eval;
 mod gguf;
@@ -21,6 +22,7 @@ mod openai;
 mod sp_tokenizer;
 
 pub use embedding::{ClauseSims, EmbeddingConfig, EmbeddingLabeler};
+pub use encoder::SentenceEncoder;
 pub use error::{LabelerError, LabelerErrorKind};
 pub use gguf::{GgufConfig, GgufLabeler};
 pub use negation::{is_negated, split_clauses};
