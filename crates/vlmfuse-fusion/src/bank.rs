@@ -289,6 +289,38 @@ impl Bank {
         self.select(cand.into_iter().map(|j| (j, dot(x, self.context(j)))), m)
     }
 
+    /// The f32 first pass of [`Bank::top_exact`] on its own: every entry's approximate cosine to
+    /// a unit-norm query and a rigorous bound on its distance to the exact one, for callers that
+    /// rank by something else than the cosine (the `adaptive` pool ranks by decayed kernel
+    /// weight). `None` when the bank is small enough that exact similarities are as cheap.
+    pub fn approx_with_bounds(&self, x: &[f64]) -> Option<(Vec<f32>, Vec<f64>)> {
+        let n = self.len();
+        if n < PREFILTER_MIN || self.mirror.len() != n * self.dim {
+            return None;
+        }
+        let xq: Vec<f32> = x.iter().map(|&v| v as f32).collect();
+        let xq_err = x
+            .iter()
+            .zip(&xq)
+            .map(|(&a, &b)| (a - b as f64).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        let xq_norm = xq.iter().map(|&v| (v as f64).powi(2)).sum::<f64>().sqrt();
+        let mut approx = Vec::with_capacity(n);
+        scan_f32(&self.mirror, &xq, self.dim, &mut approx);
+        let u = f32::EPSILON as f64 / 2.0;
+        let acc = (4 * self.dim + 16) as f64 * u;
+        let bounds = self
+            .mirror_err
+            .iter()
+            .map(|&ej| {
+                let xn = 1.0 + ej;
+                ej + xq_err * xn + acc * xn * xq_norm + 1e-12
+            })
+            .collect();
+        Some((approx, bounds))
+    }
+
     /// Keeps the `m` best `(position, similarity)` pairs, best first: higher similarity wins, and
     /// at equal similarity the older round (smaller sequence).
     fn select(&self, items: impl Iterator<Item = (usize, f64)>, m: usize) -> Vec<Neighbour> {

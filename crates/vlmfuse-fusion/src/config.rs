@@ -1,7 +1,47 @@
 //! Every number SPEC.md names is a field here rather than a constant in the code, so that the
 //! service, `eval` and the tests all read the same defaults and a deployment can change them.
 
+use crate::adaptive::AdaptiveConfig;
 use serde::{Deserialize, Serialize};
+
+/// Which fusion method the engine runs. `paper` is SPEC.md to the letter; `adaptive` is the
+/// semi-supervised, calibrated, drift-aware method of docs/METHOD.md. Both keep the same rounds,
+/// so a history made under one replays under the other.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Method {
+    /// SPEC.md §1–7 exactly: labelled rounds only, reputation-weighted LLRs that sum to one.
+    #[default]
+    Paper,
+    /// docs/METHOD.md: unlabelled rounds teach through a Dawid–Skene E-step, hierarchical
+    /// reliabilities, Platt calibration, age decay and fixed-share reputations.
+    Adaptive,
+}
+
+impl Method {
+    pub const NAMES: [&'static str; 2] = ["paper", "adaptive"];
+
+    pub fn name(&self) -> &'static str {
+        match self {
+            Method::Paper => "paper",
+            Method::Adaptive => "adaptive",
+        }
+    }
+
+    pub fn from_name(name: &str) -> Option<Self> {
+        match name {
+            "paper" => Some(Method::Paper),
+            "adaptive" => Some(Method::Adaptive),
+            _ => None,
+        }
+    }
+}
+
+impl std::fmt::Display for Method {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
 
 /// Which parts of the method are switched off (SPEC §6). All `false` is the full method.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -99,6 +139,10 @@ pub struct FusionConfig {
     /// Context dimension; `None` takes it from the first round the engine stores.
     pub dim: Option<usize>,
     pub ablations: Ablations,
+    /// The fusion method (`paper` keeps SPEC exact; `adaptive` is docs/METHOD.md).
+    pub method: Method,
+    /// The `adaptive` method's parameters (ignored under `paper`).
+    pub adaptive: AdaptiveConfig,
 }
 
 impl Default for FusionConfig {
@@ -129,6 +173,8 @@ impl Default for FusionConfig {
             shapley_seed: 0x5eed_f00d,
             dim: None,
             ablations: Ablations::default(),
+            method: Method::default(),
+            adaptive: AdaptiveConfig::default(),
         }
     }
 }
@@ -185,6 +231,9 @@ impl FusionConfig {
                 return Err("payoff parameters must be finite".into());
             }
         }
+        self.adaptive
+            .validate()
+            .map_err(|e| format!("adaptive.{e}"))?;
         Ok(())
     }
 

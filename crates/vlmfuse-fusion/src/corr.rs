@@ -24,17 +24,22 @@ pub struct CorrWindow {
 }
 
 /// Index of the unordered pair `{i, j}`, `i != j`, among the `n (n-1) / 2` pairs.
-fn pair_index(n: usize, i: usize, j: usize) -> usize {
+pub(crate) fn pair_index(n: usize, i: usize, j: usize) -> usize {
     let (a, b) = if i < j { (i, j) } else { (j, i) };
     a * n - a * (a + 1) / 2 + (b - a - 1)
 }
 
 /// The phi coefficient of a 2x2 table with every cell smoothed by +0.5, floored at 0 and capped.
 pub fn smoothed_phi(c: [u32; 4], rho_max: f64) -> f64 {
-    let n00 = c[0] as f64 + 0.5;
-    let n10 = c[1] as f64 + 0.5;
-    let n01 = c[2] as f64 + 0.5;
-    let n11 = c[3] as f64 + 0.5;
+    smoothed_phi_f64([c[0] as f64, c[1] as f64, c[2] as f64, c[3] as f64], rho_max)
+}
+
+/// [`smoothed_phi`] of a table of (expected, weighted) counts.
+pub fn smoothed_phi_f64(c: [f64; 4], rho_max: f64) -> f64 {
+    let n00 = c[0] + 0.5;
+    let n10 = c[1] + 0.5;
+    let n01 = c[2] + 0.5;
+    let n11 = c[3] + 0.5;
     let num = n11 * n00 - n10 * n01;
     let den = ((n11 + n10) * (n01 + n00) * (n11 + n01) * (n10 + n00)).sqrt();
     (num / den).clamp(0.0, rho_max)

@@ -3,8 +3,9 @@
 //! compute and persist an outcome before it touches the in-memory state, and lets `eval` replay
 //! the exact same steps.
 
+use crate::adaptive::{Adaptive, Scan};
 use crate::bank::{Bank, Neighbour};
-use crate::config::FusionConfig;
+use crate::config::{FusionConfig, Method};
 use crate::corr::CorrWindow;
 use crate::error::FusionError;
 use crate::ontology::Ontology;
@@ -64,6 +65,10 @@ pub struct Inference {
     pub pred: Vec<u8>,
     /// The whole reputation vector at inference (all `n` reporters).
     pub w_used: Vec<f64>,
+    /// `adaptive` only: the pass over the pool that inference made, reused when the round
+    /// joins the pool ([`Engine::observe`]). Not persisted: without it `observe` scans again.
+    #[serde(skip)]
+    pub scan: Option<Scan>,
 }
 
 /// One label's explanation: the prior and each member's weighted, guardrailed LLR.
@@ -86,6 +91,13 @@ pub struct FeedbackOutcome {
     pub payoff: Vec<f64>,
     pub w_before: Vec<f64>,
     pub w_after: Vec<f64>,
+    /// `adaptive` only: the round's inference-time evidence and prior log-odds per label (the
+    /// two parts of the raw fused logit), which the calibration is fitted on. Empty under
+    /// `paper`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub evidence: Vec<f64>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub prior_logit: Vec<f64>,
 }
 
 /// Per-reporter statistics kept across rounds (SPEC §4).
@@ -101,18 +113,22 @@ pub struct ReporterStats {
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Engine {
-    cfg: FusionConfig,
-    ontology: Ontology,
-    reporters: Vec<String>,
+    pub(crate) cfg: FusionConfig,
+    pub(crate) ontology: Ontology,
+    pub(crate) reporters: Vec<String>,
     #[serde(skip)]
     index: HashMap<String, usize>,
-    dim: Option<usize>,
-    bank: Bank,
-    corr: CorrWindow,
-    w: Vec<f64>,
-    threshold: ThresholdFitter,
+    pub(crate) dim: Option<usize>,
+    pub(crate) bank: Bank,
+    pub(crate) corr: CorrWindow,
+    pub(crate) w: Vec<f64>,
+    pub(crate) threshold: ThresholdFitter,
     stats: Vec<ReporterStats>,
-    labelled: u64,
+    pub(crate) labelled: u64,
+    /// `method = "adaptive"`: the pool of every observed round, the calibration, the decayed
+    /// whole-pool sums. `None` under `paper`.
+    #[serde(default)]
+    pub(crate) adaptive: Option<Adaptive>,
 }
 
 impl Engine {
@@ -144,11 +160,27 @@ impl Engine {
         if let Some(d) = cfg.dim {
             bank.set_dim(d);
         }
+        let (threshold, adaptive) = match cfg.method {
+            Method::Paper => (ThresholdFitter::new(&cfg, l), None),
+            Method::Adaptive => {
+                // The adaptive method has its own cold-start rule for the threshold.
+                let tcfg = FusionConfig {
+                    threshold_initial: cfg.adaptive.threshold_initial,
+                    threshold_min_rounds: cfg.adaptive.threshold_min_rounds,
+                    ..cfg.clone()
+                };
+                (
+                    ThresholdFitter::new(&tcfg, l),
+                    Some(Adaptive::new(&cfg, n, l)),
+                )
+            }
+        };
         Ok(Self {
             dim: cfg.dim,
             corr: CorrWindow::new(n, l, cfg.corr_window),
             w: vec![1.0 / n as f64; n],
-            threshold: ThresholdFitter::new(&cfg, l),
+            threshold,
+            adaptive,
             stats: vec![ReporterStats::default(); n],
             labelled: 0,
             bank,
@@ -171,6 +203,10 @@ impl Engine {
 
     pub fn config(&self) -> &FusionConfig {
         &self.cfg
+    }
+    /// The fusion method this engine runs.
+    pub fn method(&self) -> Method {
+        self.cfg.method
     }
     pub fn ontology(&self) -> &Ontology {
         &self.ontology
@@ -215,6 +251,9 @@ impl Engine {
             _ => {
                 self.dim = Some(d);
                 self.bank.set_dim(d);
+                if let Some(ad) = self.adaptive.as_mut() {
+                    ad.pool.bank.set_dim(d);
+                }
                 Ok(())
             }
         }
@@ -309,6 +348,9 @@ impl Engine {
 
     /// Infers a round against the state as it stands (SPEC §2–3).
     pub fn infer(&self, round: &Round) -> Inference {
+        if self.adaptive.is_some() {
+            return self.ad_infer(round);
+        }
         let nb = if self.bank.is_empty() || self.cfg.ablations.no_context {
             Vec::new()
         } else {
@@ -319,7 +361,11 @@ impl Engine {
     }
 
     /// Like [`Engine::infer`], with the bank similarities computed elsewhere (a batched GEMM).
+    /// Under `adaptive` the pool (not SPEC's bank) is searched and `sims` are ignored.
     pub fn infer_with_sims(&self, round: &Round, sims: &[f64]) -> Inference {
+        if self.adaptive.is_some() {
+            return self.ad_infer(round);
+        }
         let nb = if self.bank.is_empty() || self.cfg.ablations.no_context {
             Vec::new()
         } else {
@@ -343,7 +389,26 @@ impl Engine {
             thresholds,
             pred,
             w_used: self.w.clone(),
+            scan: None,
         }
+    }
+
+    /// A round was stored without truth (after `/v1/fuse`, or a rounds-file line): under
+    /// `adaptive` it joins the pool with its soft truth (the inference's posterior), and the
+    /// per-event EM chunk runs. Under `paper`, unlabelled rounds change nothing. Idempotent per
+    /// `seq`; call it in the order rounds were stored, with the inference the round got.
+    pub fn observe(&mut self, seq: u64, round: &Round, inf: &Inference) -> Result<(), FusionError> {
+        if self.adaptive.is_none() {
+            return Ok(());
+        }
+        if round.present.len() != self.reporters.len()
+            || round.reports.len() != self.reporters.len() * self.ontology.len()
+        {
+            return Err(FusionError::Config(
+                "observed round has sizes that do not match the engine".into(),
+            ));
+        }
+        self.ad_observe(seq, round, inf)
     }
 
     fn signals(&self, round: &Round, nb: &[Neighbour]) -> Signals {
@@ -498,7 +563,14 @@ impl Engine {
         let w_after = if cfg.ablations.frozen_reputation {
             w_before.clone()
         } else {
-            reputation_update(&w_before, &phi, cfg.eta)
+            match cfg.method {
+                Method::Paper => reputation_update(&w_before, &phi, cfg.eta),
+                Method::Adaptive => self.ad_reputation(&w_before, &phi, &signals.coalition),
+            }
+        };
+        let (evidence, prior_logit) = match cfg.method {
+            Method::Paper => (Vec::new(), Vec::new()),
+            Method::Adaptive => (signals.evidence(), signals.prior_logit()),
         };
         FeedbackOutcome {
             credit,
@@ -506,6 +578,8 @@ impl Engine {
             payoff,
             w_before,
             w_after,
+            evidence,
+            prior_logit,
         }
     }
 
@@ -520,6 +594,9 @@ impl Engine {
         self.fix_dim(d)?;
         if let Some(o) = outcome {
             self.w.clone_from(&o.w_after);
+            if self.adaptive.is_some() {
+                self.ad_credit_push(&o.phi, &lr.round.present);
+            }
             let t = self.labelled as i32; // t - 1 for the round being labelled now
             let disc = self.cfg.payoff_delta.powi(t);
             for (i, st) in self.stats.iter_mut().enumerate() {
@@ -531,19 +608,27 @@ impl Engine {
                 st.utility += disc * o.payoff[i];
             }
         }
-        self.bank.push(
-            lr.seq,
-            &lr.round.context,
-            &lr.round.present,
-            &lr.round.reports,
-            &lr.truth,
-        );
+        if self.adaptive.is_none() {
+            self.bank.push(
+                lr.seq,
+                &lr.round.context,
+                &lr.round.present,
+                &lr.round.reports,
+                &lr.truth,
+            );
+        }
         let l = self.ontology.len();
         self.corr
             .push(&lr.round.present, &lr.round.reports, &lr.truth);
         debug_assert_eq!(lr.q.len(), l);
         self.threshold.push(&lr.q, &lr.truth);
+        if self.adaptive.is_some() {
+            self.ad_apply(lr, outcome);
+        }
         self.labelled += 1;
+        if self.adaptive.is_some() {
+            self.ad_after_apply();
+        }
         Ok(())
     }
 
@@ -559,6 +644,16 @@ impl Engine {
         self.stats = stats;
         Ok(())
     }
+}
+
+/// Fixed-share mixing `w <- (1 - alpha) w + alpha / n` (docs/METHOD.md §6); `alpha = 0` returns
+/// `w` untouched.
+pub fn fixed_share(w: &[f64], alpha: f64) -> Vec<f64> {
+    if alpha == 0.0 {
+        return w.to_vec();
+    }
+    let n = w.len() as f64;
+    w.iter().map(|&x| (1.0 - alpha) * x + alpha / n).collect()
 }
 
 /// `w_i <- w_i exp(eta phi_i) / sum_j w_j exp(eta phi_j)`. The exponent is shifted by its maximum,

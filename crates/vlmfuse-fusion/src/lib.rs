@@ -2,10 +2,12 @@
 //! Dawid–Skene with an agreement guardrail. Everything here is deterministic and serialisable;
 //! the service persists it and `eval` replays it.
 
+pub mod adaptive;
 pub mod bank;
 pub mod bench;
 pub mod config;
 pub mod corr;
+pub mod curve;
 pub mod engine;
 pub mod error;
 pub mod metrics;
@@ -14,9 +16,10 @@ pub mod replay;
 pub mod signals;
 pub mod threshold;
 
-pub use config::{Ablations, FusionConfig, ThresholdMode};
+pub use adaptive::{AdaptiveConfig, Guardrail, Reputation, SoftTruth, WeightNorm};
+pub use config::{Ablations, FusionConfig, Method, ThresholdMode};
 pub use engine::{
-    reputation_update, Engine, FeedbackOutcome, Inference, LabelExplanation, LabelledRound,
+    fixed_share, reputation_update, Engine, FeedbackOutcome, Inference, LabelExplanation, LabelledRound,
     ReporterStats, Round, RoundRecord,
 };
 pub use error::FusionError;

@@ -6,7 +6,7 @@
 //! GEMM (faer) instead of one dot product per pair; each round then reads its row restricted to
 //! what its bank holds at that moment, so the results are those of the per-query path.
 
-use crate::config::FusionConfig;
+use crate::config::{FusionConfig, Method};
 use crate::engine::{Engine, LabelledRound, Round, RoundRecord};
 use crate::error::FusionError;
 use crate::metrics::{MetricsAcc, Scores};
@@ -148,8 +148,10 @@ pub fn replay(
     let mut bank_src: Vec<usize> = Vec::new();
     let block = (16_000_000 / n.max(1)).clamp(16, 512);
     let dim = rounds.first().map(|r| r.round.context.len()).unwrap_or(0);
+    // The adaptive method searches its own pool (every observed round), not SPEC's bank.
+    let batch = opts.batch_knn && engine.method() == Method::Paper;
     let mut keys: Vec<f64> = Vec::new();
-    if opts.batch_knn {
+    if batch {
         keys.reserve(n * dim);
         for r in rounds {
             keys.extend_from_slice(&r.round.context);
@@ -161,7 +163,7 @@ pub fn replay(
     while t0 < n {
         let t1 = (t0 + block).min(n);
         let mut gemm_s = 0.0;
-        if opts.batch_knn {
+        if batch {
             let start = Instant::now();
             gram.clear();
             gram.resize((t1 - t0) * t1, 0.0);
@@ -174,7 +176,7 @@ pub fn replay(
         for t in t0..t1 {
             let pr = &rounds[t];
             let start = Instant::now();
-            let inf = if opts.batch_knn {
+            let inf = if batch {
                 let row = &gram[(t - t0) * t1..(t - t0 + 1) * t1];
                 sims.clear();
                 sims.extend(bank_src.iter().map(|&s| row[s]));
@@ -183,7 +185,13 @@ pub fn replay(
                 engine.infer(&pr.round)
             };
             let history = t < n_hist;
-            let learn = pr.truth.is_some() && (history || !opts.frozen);
+            let learning = history || !opts.frozen;
+            let learn = pr.truth.is_some() && learning;
+            if learning {
+                // As the service does when it stores a round: under `adaptive` it joins the
+                // pool (its label, if any, follows right after); under `paper` a no-op.
+                engine.observe(t as u64, &pr.round, &inf)?;
+            }
             let mut phi = None;
             let mut std_error = None;
             if learn {

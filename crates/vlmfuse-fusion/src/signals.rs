@@ -178,6 +178,36 @@ impl Signals {
             .collect()
     }
 
+    /// The grand coalition's evidence `sum_i w_i lambda~_ik` per label: the fused logit less the
+    /// prior's log-odds. The `adaptive` method calibrates the two separately.
+    pub fn evidence(&self) -> Vec<f64> {
+        let l = self.l;
+        let lam = self.llr();
+        let c = self.contributions(&lam, &|_| true);
+        let mut e = vec![0.0; l];
+        for a in 0..self.members() {
+            for k in 0..l {
+                e[k] += c[a * l + k];
+            }
+        }
+        e
+    }
+
+    /// The grand coalition's fused logit `logit(pi_k) + sum_i w_i lambda~_ik` per label, before
+    /// the sigmoid and the clip.
+    pub fn fused_logit(&self) -> Vec<f64> {
+        let l = self.l;
+        let lam = self.llr();
+        let mut z = self.prior_logit();
+        let c = self.contributions(&lam, &|_| true);
+        for a in 0..self.members() {
+            for k in 0..l {
+                z[k] += c[a * l + k];
+            }
+        }
+        z
+    }
+
     /// The grand coalition's posterior: what the round predicts.
     pub fn full_posterior(&self) -> Vec<f64> {
         self.posterior(&self.llr(), &self.prior_logit(), &|_| true)

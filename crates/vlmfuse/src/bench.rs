@@ -51,6 +51,10 @@ fn eval_bench(args: &BenchArgs) -> Result<(), String> {
         plots: None,
         config: None,
         per_query_knn: false,
+        method: None,
+        labelled: None,
+        seed: 0,
+        curve: vec![],
         quiet: true,
     };
     let start = Instant::now();

@@ -1,5 +1,6 @@
 //! `vlmfuse eval`: the paper's protocol over a rounds file (SPEC §9), with the metrics table of
-//! SPEC §7 for the method, each requested ablation and the baselines.
+//! SPEC §7 for the method, each requested ablation and the baselines; `--labelled N` hides the
+//! truth of all but N history rounds, and `--curve` measures the learning curve of both methods.
 
 use crate::plots;
 use clap::Args;
@@ -10,14 +11,66 @@ use std::fs::File;
 use std::io::{BufRead, BufReader, BufWriter, Write};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
+use vlmfuse_fusion::curve::{dawid_skene, hide_labels, score_posteriors};
 use vlmfuse_fusion::metrics::Scores;
 use vlmfuse_fusion::replay::{
     history_len, prepare, replay, score_baselines, score_method, ParsedRound, ReplayOptions,
     RoundOutcome,
 };
 use vlmfuse_fusion::{
-    Ablations, Engine, FusionConfig, Label, Ontology, RoundRecord, ThresholdMode,
+    Ablations, Engine, FusionConfig, Label, Method, Ontology, RoundRecord, ThresholdMode,
 };
+
+/// The method `eval` runs when neither `--method` nor the config file names one.
+pub const DEFAULT_METHOD: Method = Method::Adaptive;
+
+/// EM iterations of the unsupervised Dawid–Skene baseline (it stops earlier once converged).
+const DS_ITERS: usize = 200;
+/// Pseudo-count added to each confusion cell of the Dawid–Skene baseline.
+const DS_SMOOTHING: f64 = 0.01;
+
+/// How many history rounds keep their truth.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Keep {
+    N(usize),
+    All,
+}
+
+impl Keep {
+    pub fn limit(&self) -> Option<usize> {
+        match self {
+            Keep::N(n) => Some(*n),
+            Keep::All => None,
+        }
+    }
+}
+
+impl std::fmt::Display for Keep {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Keep::N(n) => write!(f, "{n}"),
+            Keep::All => f.write_str("all"),
+        }
+    }
+}
+
+fn parse_keep(s: &str) -> Result<Keep, String> {
+    if s.eq_ignore_ascii_case("all") {
+        return Ok(Keep::All);
+    }
+    s.parse::<usize>()
+        .map(Keep::N)
+        .map_err(|_| format!("expected a number of labelled rounds or `all`, got {s:?}"))
+}
+
+fn parse_method(s: &str) -> Result<Method, String> {
+    Method::from_name(s).ok_or_else(|| {
+        format!(
+            "unknown method {s:?}; expected one of {}",
+            Method::NAMES.join(", ")
+        )
+    })
+}
 
 #[derive(Args, Debug, Clone)]
 pub struct EvalArgs {
@@ -48,6 +101,22 @@ pub struct EvalArgs {
     /// Compute similarities one query at a time instead of batched GEMMs (for comparison).
     #[arg(long)]
     pub per_query_knn: bool,
+    /// Fusion method: `adaptive` (docs/METHOD.md) or `paper` (SPEC.md exactly). Without it,
+    /// the config file's `[fusion] method`, else `adaptive`.
+    #[arg(long, value_parser = parse_method)]
+    pub method: Option<Method>,
+    /// Keep the truth of only N history rounds (chosen by `--seed`) and hide the others'; `all`
+    /// keeps every one. Test rounds keep theirs: they are scored on it.
+    #[arg(long, value_parser = parse_keep, value_name = "N|all")]
+    pub labelled: Option<Keep>,
+    /// Seed of the `--labelled` / `--curve` choice of labelled rounds.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Learning curve: for each N (e.g. `0,10,50,200,all`) and each method, one row of the
+    /// table, plus majority vote, unsupervised Dawid–Skene and each reporter alone; with
+    /// `--plots`, the curve and a reliability diagram per method.
+    #[arg(long, value_delimiter = ',', value_parser = parse_keep, value_name = "N,...")]
+    pub curve: Vec<Keep>,
     /// Hide the progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -82,7 +151,33 @@ pub fn load_fusion_config(path: Option<&Path>) -> Result<(FusionConfig, Ontology
         Some(labels) => Ontology::new(labels).map_err(|e| format!("{}: {e}", path.display()))?,
         None => Ontology::paper(),
     };
-    Ok((file.fusion.unwrap_or_default(), ontology))
+    let fusion = file.fusion.unwrap_or_default();
+    fusion
+        .validate()
+        .map_err(|e| format!("{}: [fusion] {e}", path.display()))?;
+    Ok((fusion, ontology))
+}
+
+/// The method `eval` runs: `--method`, else the config file's `[fusion] method` if it names one,
+/// else [`DEFAULT_METHOD`].
+pub fn resolve_method(args: &EvalArgs) -> Result<Method, String> {
+    if let Some(m) = args.method {
+        return Ok(m);
+    }
+    if let Some(path) = &args.config {
+        let text =
+            std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let v: toml::Value =
+            toml::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+        if let Some(m) = v
+            .get("fusion")
+            .and_then(|f| f.get("method"))
+            .and_then(|m| m.as_str())
+        {
+            return parse_method(m).map_err(|e| format!("{}: [fusion] {e}", path.display()));
+        }
+    }
+    Ok(DEFAULT_METHOD)
 }
 
 /// Reads a rounds file, naming the line of the first problem.
@@ -118,6 +213,11 @@ pub struct EvalRun {
     pub outcomes: Vec<RoundOutcome>,
     pub rows: Vec<Row>,
     pub n_hist: usize,
+    /// History rounds whose truth the method saw (all of them unless `--labelled`).
+    pub labelled: usize,
+    /// History rounds with truth in the file.
+    pub available: usize,
+    pub seed: u64,
 }
 
 fn ablation_list(names: &[String]) -> Result<Vec<String>, String> {
@@ -150,7 +250,14 @@ pub fn evaluate(
     args: &EvalArgs,
 ) -> Result<EvalRun, String> {
     let ablations = ablation_list(&args.ablations)?;
-    let (engine, rounds) = prepare(cfg, ontology, records).map_err(|e| e.to_string())?;
+    let (engine, all_rounds) = prepare(cfg, ontology, records).map_err(|e| e.to_string())?;
+    let n_hist = history_len(all_rounds.len(), args.split);
+    let (rounds, labelled) = hide_labels(
+        &all_rounds,
+        n_hist,
+        args.labelled.and_then(|k| k.limit()),
+        args.seed,
+    );
     let opts = ReplayOptions {
         split: args.split,
         frozen: args.frozen,
@@ -172,9 +279,8 @@ pub fn evaluate(
     };
     let l = ontology.len();
     let eps = cfg.eps;
-    let n_hist = history_len(rounds.len(), args.split);
     let mut done = 0u64;
-    bar.set_message("fusion");
+    bar.set_message(format!("fusion ({})", cfg.method));
     let (engine, outcomes) = replay(engine, &rounds, &opts, &mut |_| {
         done += 1;
         if done.is_multiple_of(64) {
@@ -210,52 +316,98 @@ pub fn evaluate(
         });
     }
     bar.finish_and_clear();
-    for (name, scores) in score_baselines(&rounds, n_hist, engine.reporters(), l, eps) {
-        rows.push(Row {
-            name: format!("baseline: {name}"),
-            kind: "baseline",
-            scores,
-        });
-    }
+    rows.extend(baseline_rows(&rounds, n_hist, engine.reporters(), l, eps));
     Ok(EvalRun {
         engine,
         rounds,
         outcomes,
         rows,
         n_hist,
+        labelled,
+        available: all_rounds[..n_hist]
+            .iter()
+            .filter(|r| r.truth.is_some())
+            .count(),
+        seed: args.seed,
     })
+}
+
+/// Each reporter alone, majority vote and unsupervised Dawid–Skene: none of them uses a label,
+/// so they are the same whatever `--labelled` hides.
+fn baseline_rows(
+    rounds: &[ParsedRound],
+    n_hist: usize,
+    reporters: &[String],
+    l: usize,
+    eps: f64,
+) -> Vec<Row> {
+    let mut rows: Vec<Row> = score_baselines(rounds, n_hist, reporters, l, eps)
+        .into_iter()
+        .map(|(name, scores)| Row {
+            name: format!("baseline: {name}"),
+            kind: "baseline",
+            scores,
+        })
+        .collect();
+    let post = dawid_skene(rounds, reporters.len(), l, DS_ITERS, DS_SMOOTHING);
+    rows.push(Row {
+        name: "baseline: Dawid-Skene (unsupervised)".into(),
+        kind: "baseline",
+        scores: score_posteriors(rounds, &post, n_hist, l, eps),
+    });
+    rows
+}
+
+const TABLE_NOTE: &str = "\nHamming: mean per-round share of wrong labels (lower is better). \
+    Macro-F1 averages all labels; a label with no true and no predicted positive scores F1 = 1.\n\
+    Baselines use no label; reporters and majority vote are hard 0/1 predictions, their Brier, \
+    log loss and ECE score them as probabilities clipped to eps. A reporter missing from a round \
+    counts as an empty label set in its own baseline. Dawid-Skene is fitted without truth on \
+    every round of the file and predicts a label when its posterior exceeds 1/2.\n";
+
+fn header(first: &str, width: usize) -> String {
+    let mut s = format!(
+        "{:<width$} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9}\n",
+        first, "Hamming", "microF1", "macroF1", "Jaccard", "Brier", "LogLoss", "ECE", "lat(us)"
+    );
+    s.push_str(&format!("{}\n", "-".repeat(width + 9 * 8)));
+    s
+}
+
+fn score_line(name: &str, c: &Scores, width: usize) -> String {
+    let lat = c
+        .latency_us
+        .map(|v| format!("{v:9.1}"))
+        .unwrap_or_else(|| format!("{:>9}", "-"));
+    format!(
+        "{:<width$} {:>8.4} {:>8.4} {:>8.4} {:>8.4} {:>8.4} {:>8.4} {:>8.4} {}\n",
+        name, c.hamming, c.micro_f1, c.macro_f1, c.jaccard, c.brier, c.log_loss, c.ece, lat
+    )
 }
 
 pub fn format_table(run: &EvalRun) -> String {
     let mut s = String::new();
     let scored = run.rows.first().map(|r| r.scores.rounds).unwrap_or(0);
     s.push_str(&format!(
-        "{} rounds: {} history, {} scored (test rounds with truth)\n\n",
+        "{} rounds: {} history ({} labelled{}), {} scored (test rounds with truth); \
+         method: {}\n\n",
         run.rounds.len(),
         run.n_hist,
-        scored
+        run.labelled,
+        if run.labelled < run.available {
+            format!(" of {}, chosen by seed {}", run.available, run.seed)
+        } else {
+            String::new()
+        },
+        scored,
+        run.engine.method()
     ));
-    s.push_str(&format!(
-        "{:<34} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9}\n",
-        "model", "Hamming", "microF1", "macroF1", "Jaccard", "Brier", "LogLoss", "ECE", "lat(us)"
-    ));
-    s.push_str(&format!("{}\n", "-".repeat(34 + 9 * 8)));
+    s.push_str(&header("model", 38));
     for r in &run.rows {
-        let c = &r.scores;
-        let lat = c
-            .latency_us
-            .map(|v| format!("{v:9.1}"))
-            .unwrap_or_else(|| format!("{:>9}", "-"));
-        s.push_str(&format!(
-            "{:<34} {:>8.4} {:>8.4} {:>8.4} {:>8.4} {:>8.4} {:>8.4} {:>8.4} {}\n",
-            r.name, c.hamming, c.micro_f1, c.macro_f1, c.jaccard, c.brier, c.log_loss, c.ece, lat
-        ));
+        s.push_str(&score_line(&r.name, &r.scores, 38));
     }
     s.push_str(
-        "\nHamming: mean per-round share of wrong labels (lower is better). Macro-F1 averages all \
-         labels; a label with no true and no predicted positive scores F1 = 1.\nBaselines are hard \
-         0/1 predictions; their Brier, log loss and ECE score them as probabilities clipped to eps. \
-         A reporter missing from a round counts as an empty label set in its own baseline.\n",
+        TABLE_NOTE,
     );
     let names = run.engine.reporters();
     let w = run.engine.reputations();
@@ -309,8 +461,11 @@ pub fn emit_line(engine: &Engine, o: &RoundOutcome) -> Value {
 fn report_json(run: &EvalRun, args: &EvalArgs) -> Value {
     json!({
         "file": args.rounds.display().to_string(),
+        "method": run.engine.method().name(),
         "rounds": run.rounds.len(),
         "history": run.n_hist,
+        "labelled_history": run.labelled,
+        "seed": run.seed,
         "split": args.split,
         "frozen": args.frozen,
         "reporters": run.engine.reporters(),
@@ -326,8 +481,12 @@ fn report_json(run: &EvalRun, args: &EvalArgs) -> Value {
 
 pub fn run(args: EvalArgs) -> Result<(), String> {
     let started = Instant::now();
-    let (cfg, ontology) = load_fusion_config(args.config.as_deref())?;
+    let (mut cfg, ontology) = load_fusion_config(args.config.as_deref())?;
+    cfg.method = resolve_method(&args)?;
     let records = read_rounds(&args.rounds)?;
+    if !args.curve.is_empty() {
+        return run_curve(&cfg, &ontology, &records, &args, started);
+    }
     let run = evaluate(&cfg, &ontology, &records, &args)
         .map_err(|e| format!("{}: {e}", args.rounds.display()))?;
     print!("{}", format_table(&run));
@@ -348,6 +507,207 @@ pub fn run(args: EvalArgs) -> Result<(), String> {
     if let Some(dir) = &args.plots {
         let files = plots::write_all(dir, &run)?;
         for f in files {
+            eprintln!("wrote {}", f.display());
+        }
+    }
+    eprintln!("eval took {:.3} s", started.elapsed().as_secs_f64());
+    Ok(())
+}
+
+/// One point of the learning curve: a method run with `labelled` history labels.
+pub struct CurvePoint {
+    pub keep: Keep,
+    pub labelled: usize,
+    pub method: Method,
+    pub scores: Scores,
+    pub final_w: Vec<f64>,
+}
+
+pub struct CurveRun {
+    pub points: Vec<CurvePoint>,
+    /// Reporters alone, majority vote, unsupervised Dawid–Skene (independent of N).
+    pub baselines: Vec<Row>,
+    pub reporters: Vec<String>,
+    pub rounds: usize,
+    pub n_hist: usize,
+    pub available: usize,
+    pub seed: u64,
+    pub frozen: bool,
+}
+
+/// The methods a curve compares, in table order.
+pub const CURVE_METHODS: [Method; 2] = [Method::Paper, Method::Adaptive];
+
+/// Runs every method at every N of `--curve` on the same rounds (the same labelled subset for
+/// both methods at a given N and seed).
+pub fn evaluate_curve(
+    cfg: &FusionConfig,
+    ontology: &Ontology,
+    records: &[(usize, RoundRecord)],
+    args: &EvalArgs,
+) -> Result<CurveRun, String> {
+    if !args.ablations.is_empty() || args.emit_rounds.is_some() {
+        return Err(
+            "--curve does not combine with --ablation or --emit-rounds; run those with \
+             --labelled N instead"
+                .into(),
+        );
+    }
+    let (engine, all_rounds) = prepare(cfg, ontology, records).map_err(|e| e.to_string())?;
+    let n_hist = history_len(all_rounds.len(), args.split);
+    let available = all_rounds[..n_hist]
+        .iter()
+        .filter(|r| r.truth.is_some())
+        .count();
+    let opts = ReplayOptions {
+        split: args.split,
+        frozen: args.frozen,
+        batch_knn: !args.per_query_knn,
+    };
+    let total = (all_rounds.len() * args.curve.len() * CURVE_METHODS.len()) as u64;
+    let bar = if args.quiet {
+        ProgressBar::hidden()
+    } else {
+        let b = ProgressBar::new(total);
+        b.set_style(
+            ProgressStyle::with_template(
+                "{spinner} {msg:<22} [{bar:40}] {pos}/{len} rounds ({per_sec}, eta {eta})",
+            )
+            .expect("static template")
+            .progress_chars("=> "),
+        );
+        b
+    };
+    let l = ontology.len();
+    let mut points = Vec::new();
+    let mut done = 0u64;
+    for &keep in &args.curve {
+        let (rounds, labelled) = hide_labels(&all_rounds, n_hist, keep.limit(), args.seed);
+        for method in CURVE_METHODS {
+            bar.set_message(format!("{method}, N = {keep}"));
+            let c = FusionConfig {
+                method,
+                ..cfg.clone()
+            };
+            let mut fresh = Engine::new(c, ontology.clone(), engine.reporters().to_vec())
+                .map_err(|e| e.to_string())?;
+            if let Some(d) = engine.dim() {
+                fresh.fix_dim(d).map_err(|e| e.to_string())?;
+            }
+            let (end, outs) = replay(fresh, &rounds, &opts, &mut |_| {
+                done += 1;
+                if done.is_multiple_of(64) {
+                    bar.set_position(done);
+                }
+            })
+            .map_err(|e| e.to_string())?;
+            points.push(CurvePoint {
+                keep,
+                labelled,
+                method,
+                scores: score_method(&rounds, &outs, l, cfg.eps),
+                final_w: end.reputations().to_vec(),
+            });
+        }
+    }
+    bar.finish_and_clear();
+    Ok(CurveRun {
+        points,
+        baselines: baseline_rows(&all_rounds, n_hist, engine.reporters(), l, cfg.eps),
+        reporters: engine.reporters().to_vec(),
+        rounds: all_rounds.len(),
+        n_hist,
+        available,
+        seed: args.seed,
+        frozen: args.frozen,
+    })
+}
+
+pub fn format_curve(c: &CurveRun) -> String {
+    let mut s = format!(
+        "learning curve: {} rounds, {} history ({} with truth), {} scored; labelled rounds \
+         chosen by seed {}{}\n\n",
+        c.rounds,
+        c.n_hist,
+        c.available,
+        c.baselines.first().map(|b| b.scores.rounds).unwrap_or(0),
+        c.seed,
+        if c.frozen {
+            "; frozen after the history"
+        } else {
+            "; learning continues on the scored rounds"
+        }
+    );
+    s.push_str(&header("labelled  method", 38));
+    for p in &c.points {
+        let name = format!("{:<9} {}", p.labelled, p.method);
+        s.push_str(&score_line(&name, &p.scores, 38));
+    }
+    s.push('\n');
+    s.push_str(&header("baseline (no labels used)", 38));
+    for b in &c.baselines {
+        let name = b.name.trim_start_matches("baseline: ");
+        s.push_str(&score_line(name, &b.scores, 38));
+    }
+    s.push_str(TABLE_NOTE);
+    s.push_str("Final reputations:\n");
+    for p in &c.points {
+        s.push_str(&format!(
+            "  {:<9} {:<9} {}\n",
+            p.labelled,
+            p.method.name(),
+            c.reporters
+                .iter()
+                .zip(&p.final_w)
+                .map(|(n, w)| format!("{n} {w:.4}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        ));
+    }
+    s
+}
+
+fn curve_json(c: &CurveRun, args: &EvalArgs) -> Value {
+    json!({
+        "file": args.rounds.display().to_string(),
+        "rounds": c.rounds,
+        "history": c.n_hist,
+        "history_with_truth": c.available,
+        "seed": c.seed,
+        "split": args.split,
+        "frozen": c.frozen,
+        "reporters": c.reporters,
+        "macro_f1_note": "a label with no true and no predicted positive scores F1 = 1",
+        "points": c.points.iter().map(|p| json!({
+            "requested": p.keep.to_string(),
+            "labelled": p.labelled,
+            "method": p.method.name(),
+            "scores": p.scores,
+            "final_reputations": map_of(&c.reporters, &p.final_w),
+        })).collect::<Vec<_>>(),
+        "baselines": c.baselines.iter().map(|r| json!({
+            "name": r.name,
+            "scores": r.scores,
+        })).collect::<Vec<_>>(),
+    })
+}
+
+fn run_curve(
+    cfg: &FusionConfig,
+    ontology: &Ontology,
+    records: &[(usize, RoundRecord)],
+    args: &EvalArgs,
+    started: Instant,
+) -> Result<(), String> {
+    let c = evaluate_curve(cfg, ontology, records, args)
+        .map_err(|e| format!("{}: {e}", args.rounds.display()))?;
+    print!("{}", format_curve(&c));
+    if let Some(path) = &args.report {
+        let text = serde_json::to_string_pretty(&curve_json(&c, args)).map_err(|e| e.to_string())?;
+        std::fs::write(path, text).map_err(|e| format!("{}: {e}", path.display()))?;
+    }
+    if let Some(dir) = &args.plots {
+        for f in plots::write_curve(dir, &c)? {
             eprintln!("wrote {}", f.display());
         }
     }

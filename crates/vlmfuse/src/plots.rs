@@ -1,7 +1,8 @@
 //! The charts `eval --plots` writes, as SVG (plotters' SVG backend needs no system fonts, so the
 //! charts render the same on a bare CI machine as on a laptop).
 
-use crate::eval::EvalRun;
+use crate::eval::{CurveRun, EvalRun, CURVE_METHODS};
+use vlmfuse_fusion::metrics::Scores;
 use plotters::coord::ranged1d::SegmentValue;
 use plotters::prelude::*;
 use std::path::{Path, PathBuf};
@@ -97,14 +98,19 @@ fn reputations(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
 
 /// Reliability diagram of the fused posteriors on the scored rounds (10 equal-width bins).
 fn reliability(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
-    let scores = &run.rows[0].scores;
+    let title = format!(
+        "Reliability of fused posteriors, {} (ECE {:.4})",
+        run.engine.method(),
+        run.rows[0].scores.ece
+    );
+    reliability_diagram(path, &title, &run.rows[0].scores)
+}
+
+fn reliability_diagram(path: &Path, title: &str, scores: &Scores) -> Result<PathBuf, String> {
     let root = SVGBackend::new(path, (640, 640)).into_drawing_area();
     root.fill(&WHITE).map_err(err(path))?;
     let mut chart = ChartBuilder::on(&root)
-        .caption(
-            format!("Reliability of fused posteriors (ECE {:.4})", scores.ece),
-            ("sans-serif", 22),
-        )
+        .caption(title, ("sans-serif", 20))
         .margin(16)
         .x_label_area_size(44)
         .y_label_area_size(56)
@@ -232,6 +238,162 @@ fn ablations(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
                 bar.set_margin(5, 5, 0, 0);
                 bar
             }))
+            .map_err(err(path))?;
+    }
+    root.present().map_err(err(path))?;
+    Ok(path.to_path_buf())
+}
+
+/// The learning curve (`eval --curve`): Hamming, micro-F1 and macro-F1 of each method against
+/// the number of labelled history rounds, with the label-free baselines as horizontal lines; and
+/// a reliability diagram per method at the curve's last point.
+pub fn write_curve(dir: &Path, c: &CurveRun) -> Result<Vec<PathBuf>, String> {
+    std::fs::create_dir_all(dir).map_err(err(dir))?;
+    let mut files = vec![curve(&dir.join("curve.svg"), c)?];
+    for m in CURVE_METHODS {
+        if let Some(p) = c.points.iter().rev().find(|p| p.method == m) {
+            let title = format!(
+                "Reliability, {m}, {} labelled (ECE {:.4})",
+                p.labelled, p.scores.ece
+            );
+            files.push(reliability_diagram(
+                &dir.join(format!("reliability-{m}.svg")),
+                &title,
+                &p.scores,
+            )?);
+        }
+    }
+    Ok(files)
+}
+
+fn curve(path: &Path, c: &CurveRun) -> Result<PathBuf, String> {
+    // The N of the curve in the order asked, as categories (0 and 1,269 on one axis).
+    let mut ns: Vec<usize> = Vec::new();
+    for p in &c.points {
+        if !ns.contains(&p.labelled) {
+            ns.push(p.labelled);
+        }
+    }
+    let root = SVGBackend::new(path, (1500, 520)).into_drawing_area();
+    root.fill(&WHITE).map_err(err(path))?;
+    let root = root
+        .titled(
+            &format!(
+                "Learning curve: scored rounds vs labelled history rounds (seed {}{})",
+                c.seed,
+                if c.frozen { ", frozen" } else { "" }
+            ),
+            ("sans-serif", 22),
+        )
+        .map_err(err(path))?;
+    let panels = root.split_evenly((1, 3));
+    let metrics: [(&str, Metric, bool); 3] = [
+        ("Hamming (lower is better)", |s| s.hamming, false),
+        ("micro-F1", |s| s.micro_f1, true),
+        ("macro-F1", |s| s.macro_f1, true),
+    ];
+    let mv = c.baselines.iter().find(|b| b.name.ends_with("majority vote"));
+    let ds = c.baselines.iter().find(|b| b.name.contains("Dawid-Skene"));
+    for (panel, (title, get, higher)) in panels.iter().zip(metrics) {
+        let mut vals: Vec<f64> = c.points.iter().map(|p| get(&p.scores)).collect();
+        vals.extend(c.baselines.iter().map(|b| get(&b.scores)));
+        let lo = vals.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = vals.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let pad = ((hi - lo) * 0.08).max(0.01);
+        let mut chart = ChartBuilder::on(panel)
+            .caption(title, ("sans-serif", 18))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(52)
+            .build_cartesian_2d(-0.3f64..(ns.len() as f64 - 0.7), (lo - pad)..(hi + pad))
+            .map_err(err(path))?;
+        let ns_ref = &ns;
+        chart
+            .configure_mesh()
+            .x_labels(ns.len())
+            .x_label_formatter(&|x| {
+                let i = x.round();
+                if (x - i).abs() < 1e-6 && i >= 0.0 && (i as usize) < ns_ref.len() {
+                    ns_ref[i as usize].to_string()
+                } else {
+                    String::new()
+                }
+            })
+            .x_desc("labelled history rounds")
+            .draw()
+            .map_err(err(path))?;
+        let xmax = ns.len() as f64 - 0.7;
+        let mut hline = |name: String, v: f64, color: RGBColor| -> Result<(), String> {
+            chart
+                .draw_series(LineSeries::new(
+                    vec![(-0.3, v), (xmax, v)],
+                    color.stroke_width(2),
+                ))
+                .map_err(err(path))?
+                .label(name)
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+                });
+            Ok(())
+        };
+        if let Some(b) = mv {
+            hline("majority vote".into(), get(&b.scores), PALETTE[7])?;
+        }
+        if let Some(b) = ds {
+            hline("Dawid-Skene (no labels)".into(), get(&b.scores), PALETTE[4])?;
+        }
+        let best = c
+            .baselines
+            .iter()
+            .filter(|b| b.name.ends_with(" alone"))
+            .max_by(|a, b| {
+                let (x, y) = (get(&a.scores), get(&b.scores));
+                if higher {
+                    x.total_cmp(&y)
+                } else {
+                    y.total_cmp(&x)
+                }
+            });
+        if let Some(b) = best {
+            hline(
+                format!("best reporter ({})", b.name.trim_start_matches("baseline: ")),
+                get(&b.scores),
+                PALETTE[5],
+            )?;
+        }
+        for (mi, m) in CURVE_METHODS.iter().enumerate() {
+            let color = PALETTE[mi * 3 % PALETTE.len()];
+            let pts: Vec<(f64, f64)> = c
+                .points
+                .iter()
+                .filter(|p| p.method == *m)
+                .map(|p| {
+                    let x = ns.iter().position(|&n| n == p.labelled).unwrap_or(0) as f64;
+                    (x, get(&p.scores))
+                })
+                .collect();
+            chart
+                .draw_series(LineSeries::new(pts.clone(), color.stroke_width(3)))
+                .map_err(err(path))?
+                .label(m.name())
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3))
+                });
+            chart
+                .draw_series(pts.iter().map(|&p| Circle::new(p, 4, color.filled())))
+                .map_err(err(path))?;
+        }
+        chart
+            .configure_series_labels()
+            .position(if higher {
+                SeriesLabelPosition::LowerRight
+            } else {
+                SeriesLabelPosition::UpperRight
+            })
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 12))
+            .draw()
             .map_err(err(path))?;
     }
     root.present().map_err(err(path))?;

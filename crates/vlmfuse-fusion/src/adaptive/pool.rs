@@ -1,0 +1,448 @@
+//! The `adaptive` method's pool: every observed round, labelled or not, with its soft truth and
+//! its own list of nearest neighbours among all the others.
+//!
+//! A round's soft truth (its E-step posterior) depends on the reliabilities at its own context,
+//! which come from its neighbours. Keeping each entry's neighbour list current (a new round is
+//! inserted into the lists of the entries it is near, found in the same pass over the bank that
+//! inference makes anyway) makes re-estimating one entry cost `O(K n L)` instead of a scan of the
+//! pool, which is what keeps the per-round EM work bounded and a full EM pass linear in the pool.
+//!
+//! Neighbours are ranked by their kernel weight `max(0, cos)^tau * 2^(-|age| / h)` (the age in
+//! labelled rounds between the two entries), then by cosine, then older round first. Without
+//! decay that is SPEC's order exactly (cosine, then older first); with it, a recent round that is
+//! a little less similar beats an old one, so decay does not empty the neighbourhood of weight.
+
+use crate::bank::{dot, Bank};
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+
+/// A neighbour: position, cosine, and the ranking weight it has for the entry (or query) whose
+/// list it is in.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Nb {
+    pub pos: u32,
+    pub sim: f64,
+    pub key: f64,
+}
+
+/// What a pass over the pool found for a round about to join it.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Scan {
+    /// Pool size at scan time.
+    pub pool_len: usize,
+    /// The round's own neighbours, best first.
+    pub top: Vec<Nb>,
+    /// Entries that may take the round as a neighbour, with exact cosines, in pool order.
+    pub rev: Vec<(usize, f64)>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Pool {
+    /// Contexts, presence and reports (its truths are unused: soft truths live here).
+    pub(crate) bank: Bank,
+    n: usize,
+    l: usize,
+    /// Neighbours kept per entry: `max(K, K_prior)`.
+    kmax: usize,
+    tau: f64,
+    half_life: f64,
+    /// `L` soft truths per entry: the truth itself once labelled.
+    soft: Vec<f64>,
+    labelled: Vec<bool>,
+    /// The engine's labelled-round count when the entry was observed (its age clock).
+    clock: Vec<u64>,
+    /// Per entry: up to `kmax` neighbours, best first.
+    nb: Vec<Vec<Nb>>,
+    by_seq: HashMap<u64, usize>,
+    /// Positions of the unlabelled entries, ascending: what EM visits.
+    unlabelled: Vec<u32>,
+}
+
+/// `max(0, s)^tau`.
+#[inline]
+pub fn kernel(s: f64, tau: f64) -> f64 {
+    s.max(0.0).powf(tau)
+}
+
+/// `2^(-age / h)`, exactly 1 without decay.
+#[inline]
+pub fn decay(age: f64, half_life: f64) -> f64 {
+    if half_life > 0.0 {
+        (-age / half_life).exp2()
+    } else {
+        1.0
+    }
+}
+
+impl Pool {
+    pub fn new(n: usize, l: usize, kmax: usize, tau: f64, half_life: f64) -> Self {
+        Self {
+            bank: Bank::new(n, l),
+            n,
+            l,
+            kmax,
+            tau,
+            half_life,
+            soft: Vec::new(),
+            labelled: Vec::new(),
+            clock: Vec::new(),
+            nb: Vec::new(),
+            by_seq: HashMap::new(),
+            unlabelled: Vec::new(),
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.labelled.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.labelled.is_empty()
+    }
+
+    pub fn kmax(&self) -> usize {
+        self.kmax
+    }
+
+    pub fn bank(&self) -> &Bank {
+        &self.bank
+    }
+
+    pub fn position(&self, seq: u64) -> Option<usize> {
+        self.by_seq.get(&seq).copied()
+    }
+
+    pub fn soft(&self, pos: usize) -> &[f64] {
+        &self.soft[pos * self.l..(pos + 1) * self.l]
+    }
+
+    pub fn is_labelled(&self, pos: usize) -> bool {
+        self.labelled[pos]
+    }
+
+    pub fn labelled_count(&self) -> usize {
+        self.len() - self.unlabelled.len()
+    }
+
+    /// Positions of the unlabelled entries, ascending.
+    pub fn unlabelled(&self) -> &[u32] {
+        &self.unlabelled
+    }
+
+    pub fn clock(&self, pos: usize) -> u64 {
+        self.clock[pos]
+    }
+
+    pub fn neighbours(&self, pos: usize) -> &[Nb] {
+        &self.nb[pos]
+    }
+
+    pub fn present(&self, pos: usize) -> Vec<bool> {
+        (0..self.n).map(|i| self.bank.present(pos, i)).collect()
+    }
+
+    pub fn reports(&self, pos: usize) -> Vec<u8> {
+        let mut r = Vec::with_capacity(self.n * self.l);
+        for i in 0..self.n {
+            for k in 0..self.l {
+                r.push(self.bank.report(pos, i, k));
+            }
+        }
+        r
+    }
+
+    pub fn set_soft(&mut self, pos: usize, t: &[f64]) {
+        self.soft[pos * self.l..(pos + 1) * self.l].copy_from_slice(t);
+    }
+
+    pub fn set_label(&mut self, pos: usize, y: &[u8]) {
+        for (d, &v) in self.soft[pos * self.l..(pos + 1) * self.l]
+            .iter_mut()
+            .zip(y)
+        {
+            *d = v as f64;
+        }
+        if !self.labelled[pos] {
+            if let Ok(i) = self.unlabelled.binary_search(&(pos as u32)) {
+                self.unlabelled.remove(i);
+            }
+        }
+        self.labelled[pos] = true;
+    }
+
+    /// The ranking weight of an entry observed at clock `c` with cosine `sim`, seen from clock
+    /// `at`.
+    #[inline]
+    pub fn key(&self, sim: f64, c: u64, at: u64) -> f64 {
+        let k = kernel(sim, self.tau);
+        if self.half_life > 0.0 && k > 0.0 {
+            k * decay((at as f64 - c as f64).abs(), self.half_life)
+        } else {
+            k
+        }
+    }
+
+    /// `a` ranks before `b`: higher weight, then higher cosine, then the older round.
+    #[inline]
+    fn before(&self, a: &Nb, b: &Nb) -> bool {
+        a.key > b.key
+            || (a.key == b.key
+                && (a.sim > b.sim
+                    || (a.sim == b.sim
+                        && self.bank.seq(a.pos as usize) < self.bank.seq(b.pos as usize))))
+    }
+
+    /// The worst neighbour an entry keeps, when its list is full (a newcomer must beat it).
+    fn worst(&self, pos: usize) -> Option<&Nb> {
+        let list = &self.nb[pos];
+        if list.len() < self.kmax {
+            None
+        } else {
+            list.last()
+        }
+    }
+
+    /// Sorts neighbours best first and keeps `m` (a selection first, so that ranking a whole
+    /// small pool costs O(n + m log m)).
+    pub fn rank(&self, v: &mut Vec<Nb>, m: usize) {
+        let cmp = |a: &Nb, b: &Nb| {
+            b.key
+                .total_cmp(&a.key)
+                .then(b.sim.total_cmp(&a.sim))
+                .then(
+                    self.bank
+                        .seq(a.pos as usize)
+                        .cmp(&self.bank.seq(b.pos as usize)),
+                )
+        };
+        if m == 0 {
+            v.clear();
+            return;
+        }
+        if v.len() > m {
+            v.select_nth_unstable_by(m - 1, cmp);
+            v.truncate(m);
+        }
+        v.sort_by(cmp);
+    }
+
+    /// One pass over the pool for a round with context `x` (unit norm) observed at clock `at`:
+    /// its `kmax` best neighbours and the entries whose list it may enter. Large pools use the
+    /// bank's f32 first pass with its rigorous bound: only entries whose weight could reach the
+    /// cut are scored exactly.
+    pub fn scan(&self, x: &[f64], at: u64) -> Scan {
+        let len = self.len();
+        let m = self.kmax.min(len);
+        let mut top: Vec<Nb> = Vec::new();
+        let mut rev: Vec<(usize, f64)> = Vec::new();
+        let newcomer_beats = |j: usize, sim: f64| match self.worst(j) {
+            None => true,
+            Some(w) => {
+                let key = self.key(sim, at, self.clock[j]);
+                // A filter only: `insert` settles exact ties by age.
+                key > w.key || (key == w.key && sim >= w.sim)
+            }
+        };
+        match self.bank.approx_with_bounds(x) {
+            None => {
+                for j in 0..len {
+                    let sim = dot(x, self.bank.context(j));
+                    top.push(Nb {
+                        pos: j as u32,
+                        sim,
+                        key: self.key(sim, self.clock[j], at),
+                    });
+                    if newcomer_beats(j, sim) {
+                        rev.push((j, sim));
+                    }
+                }
+                self.rank(&mut top, m);
+            }
+            Some((approx, bound)) => {
+                let mut lo: Vec<f64> = Vec::with_capacity(len);
+                for j in 0..len {
+                    let a = approx[j] as f64;
+                    lo.push(self.key(a - bound[j], self.clock[j], at));
+                    let up = a + bound[j];
+                    let reach = match self.worst(j) {
+                        None => true,
+                        Some(w) => self.key(up, at, self.clock[j]) >= w.key,
+                    };
+                    if reach {
+                        let sim = dot(x, self.bank.context(j));
+                        if newcomer_beats(j, sim) {
+                            rev.push((j, sim));
+                        }
+                    }
+                }
+                if m > 0 {
+                    let mut sel = lo.clone();
+                    let (_, &mut cut, _) = sel.select_nth_unstable_by(m - 1, |a, b| b.total_cmp(a));
+                    for j in 0..len {
+                        let up = self.key(approx[j] as f64 + bound[j], self.clock[j], at);
+                        if up >= cut {
+                            let sim = dot(x, self.bank.context(j));
+                            top.push(Nb {
+                                pos: j as u32,
+                                sim,
+                                key: self.key(sim, self.clock[j], at),
+                            });
+                        }
+                    }
+                    self.rank(&mut top, m);
+                }
+            }
+        }
+        Scan {
+            pool_len: len,
+            top,
+            rev,
+        }
+    }
+
+    /// Completes a scan made when the pool was shorter with the entries that joined since.
+    pub fn extend_scan(&self, x: &[f64], at: u64, scan: &Scan) -> Scan {
+        let len = self.len();
+        let mut top = scan.top.clone();
+        let mut rev = scan.rev.clone();
+        for j in scan.pool_len..len {
+            let sim = dot(x, self.bank.context(j));
+            top.push(Nb {
+                pos: j as u32,
+                sim,
+                key: self.key(sim, self.clock[j], at),
+            });
+            rev.push((j, sim));
+        }
+        self.rank(&mut top, self.kmax);
+        Scan {
+            pool_len: len,
+            top,
+            rev,
+        }
+    }
+
+    /// Appends a round observed at clock `clock`, with its neighbours from [`Pool::scan`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn insert(
+        &mut self,
+        seq: u64,
+        context: &[f64],
+        present: &[bool],
+        reports: &[u8],
+        soft: &[f64],
+        labelled: bool,
+        clock: u64,
+        scan: &Scan,
+    ) -> usize {
+        let pos = self.len();
+        let zeros = vec![0u8; self.l];
+        self.bank.push(seq, context, present, reports, &zeros);
+        self.soft.extend_from_slice(soft);
+        self.labelled.push(labelled);
+        if !labelled {
+            self.unlabelled.push(pos as u32);
+        }
+        self.clock.push(clock);
+        self.by_seq.insert(seq, pos);
+        self.nb
+            .push(scan.top.iter().take(self.kmax).copied().collect());
+        let me = pos as u32;
+        for &(j, sim) in &scan.rev {
+            let entry = Nb {
+                pos: me,
+                sim,
+                key: self.key(sim, clock, self.clock[j]),
+            };
+            if let Some(w) = self.worst(j) {
+                if !self.before(&entry, w) {
+                    continue;
+                }
+            }
+            let at = self.nb[j]
+                .iter()
+                .position(|e| self.before(&entry, e))
+                .unwrap_or(self.nb[j].len());
+            let list = &mut self.nb[j];
+            list.insert(at, entry);
+            if list.len() > self.kmax {
+                list.pop();
+            }
+        }
+        pos
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn unit(v: &[f64]) -> Vec<f64> {
+        let n = v.iter().map(|x| x * x).sum::<f64>().sqrt();
+        v.iter().map(|x| x / n).collect()
+    }
+
+    fn rnd(state: &mut u64) -> f64 {
+        *state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((*state >> 11) as f64 / (1u64 << 53) as f64) - 0.5
+    }
+
+    /// Builds a pool of `count` rounds and checks every entry's list against a brute-force
+    /// ranking over all other entries.
+    fn check(count: usize, dim: usize, half_life: f64, quantise: bool) {
+        let mut state = 17u64;
+        let mut pool = Pool::new(1, 1, 6, 4.0, half_life);
+        let mut ctx = Vec::new();
+        let mut clocks = Vec::new();
+        for s in 0..count as u64 {
+            let v: Vec<f64> = (0..dim)
+                .map(|_| {
+                    let r = rnd(&mut state);
+                    if quantise {
+                        (r * 4.0).round() + 0.01
+                    } else {
+                        r
+                    }
+                })
+                .collect();
+            let x = unit(&v);
+            let clock = s / 3;
+            let scan = pool.scan(&x, clock);
+            pool.insert(s, &x, &[true], &[0], &[0.0], false, clock, &scan);
+            ctx.push(x);
+            clocks.push(clock);
+        }
+        for j in 0..ctx.len() {
+            let mut all: Vec<Nb> = (0..ctx.len())
+                .filter(|&i| i != j)
+                .map(|i| {
+                    let sim = dot(&ctx[j], &ctx[i]);
+                    Nb {
+                        pos: i as u32,
+                        sim,
+                        key: pool.key(sim, clocks[i], clocks[j]),
+                    }
+                })
+                .collect();
+            pool.rank(&mut all, 6);
+            let want: Vec<u32> = all.iter().map(|e| e.pos).collect();
+            let got: Vec<u32> = pool.neighbours(j).iter().map(|e| e.pos).collect();
+            assert_eq!(got, want, "entry {j}");
+        }
+    }
+
+    #[test]
+    fn neighbour_lists_equal_a_brute_force_ranking_with_ties() {
+        // Quantised coordinates: many exact ties, which must go to the older round (`dot` sums in
+        // one fixed order, so it is exactly symmetric and ties stay ties).
+        check(400, 3, 0.0, true);
+    }
+
+    #[test]
+    fn neighbour_lists_with_decay_and_the_f32_first_pass() {
+        check(2600, 8, 0.0, false);
+        check(2600, 8, 40.0, false);
+    }
+}

@@ -1,0 +1,213 @@
+//! The learning-curve protocol of `eval --labelled N` / `--curve` and the unsupervised
+//! Dawid–Skene baseline it is compared with. No I/O.
+
+use crate::metrics::{MetricsAcc, Scores};
+use crate::replay::ParsedRound;
+use rand::seq::SliceRandom;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+/// Keeps the truth of `keep` history rounds (all of them for `None`), chosen uniformly among the
+/// history rounds that have one by `seed`, and hides the others'. Test rounds (after the first
+/// `n_hist`) keep their truth: they are scored on it. Returns the rounds and how many history
+/// rounds kept their truth.
+pub fn hide_labels(
+    rounds: &[ParsedRound],
+    n_hist: usize,
+    keep: Option<usize>,
+    seed: u64,
+) -> (Vec<ParsedRound>, usize) {
+    let mut out = rounds.to_vec();
+    let labelled: Vec<usize> = (0..n_hist.min(rounds.len()))
+        .filter(|&t| rounds[t].truth.is_some())
+        .collect();
+    let Some(keep) = keep else {
+        return (out, labelled.len());
+    };
+    if keep >= labelled.len() {
+        return (out, labelled.len());
+    }
+    let mut order = labelled.clone();
+    order.shuffle(&mut ChaCha8Rng::seed_from_u64(seed));
+    for &t in &order[keep..] {
+        out[t].truth = None;
+    }
+    (out, keep)
+}
+
+/// Binary-relevance Dawid–Skene (Dawid & Skene 1979), fitted without any truth on every round of
+/// the file: per reporter and label a 2x2 confusion matrix and per label a class prior, EM from
+/// the majority-vote initialisation, as crowd-kit's `BinaryRelevance(DawidSkene)` does. Context
+/// is ignored. Returns `P(y_k = 1)` per round and label. `smoothing` is added to every confusion
+/// count (keeps a reporter that never said "yes" from producing log 0).
+pub fn dawid_skene(
+    rounds: &[ParsedRound],
+    n: usize,
+    l: usize,
+    iters: usize,
+    smoothing: f64,
+) -> Vec<Vec<f64>> {
+    let m = rounds.len();
+    // Initial posteriors: the share of present reporters that report the label.
+    let mut post: Vec<Vec<f64>> = rounds
+        .iter()
+        .map(|r| {
+            let present = r.round.present.iter().filter(|&&p| p).count().max(1) as f64;
+            (0..l)
+                .map(|k| {
+                    (0..n)
+                        .filter(|&i| r.round.present[i] && r.round.reports[i * l + k] != 0)
+                        .count() as f64
+                        / present
+                })
+                .collect()
+        })
+        .collect();
+    for _ in 0..iters {
+        // M-step: per reporter and label, P(r = 1 | y = 1) and P(r = 1 | y = 0); class priors.
+        let mut c = vec![[smoothing; 4]; n * l]; // [r1y1, r0y1, r1y0, r0y0]
+        let mut prior = vec![0.0; l];
+        for (r, p) in rounds.iter().zip(&post) {
+            for k in 0..l {
+                prior[k] += p[k];
+                for i in 0..n {
+                    if !r.round.present[i] {
+                        continue;
+                    }
+                    let cell = &mut c[i * l + k];
+                    if r.round.reports[i * l + k] != 0 {
+                        cell[0] += p[k];
+                        cell[2] += 1.0 - p[k];
+                    } else {
+                        cell[1] += p[k];
+                        cell[3] += 1.0 - p[k];
+                    }
+                }
+            }
+        }
+        // Log-likelihood ratios of a "yes" and a "no" per reporter and label, and the priors.
+        let mut llr = vec![(0.0f64, 0.0f64); n * l];
+        for (v, cell) in llr.iter_mut().zip(&c) {
+            let tp = cell[0] / (cell[0] + cell[1]);
+            let fp = cell[2] / (cell[2] + cell[3]);
+            *v = ((tp / fp).ln(), ((1.0 - tp) / (1.0 - fp)).ln());
+        }
+        let prior_logit: Vec<f64> = prior
+            .iter()
+            .map(|&p| {
+                let pi = (p / m as f64).clamp(1e-6, 1.0 - 1e-6);
+                (pi / (1.0 - pi)).ln()
+            })
+            .collect();
+        let mut change = 0.0f64;
+        // E-step.
+        for (r, p) in rounds.iter().zip(post.iter_mut()) {
+            for k in 0..l {
+                let mut z = prior_logit[k];
+                for i in 0..n {
+                    if !r.round.present[i] {
+                        continue;
+                    }
+                    let (yes, no) = llr[i * l + k];
+                    z += if r.round.reports[i * l + k] != 0 { yes } else { no };
+                }
+                let q = crate::signals::sigmoid(z);
+                change = change.max((q - p[k]).abs());
+                p[k] = q;
+            }
+        }
+        if change < 1e-7 {
+            break;
+        }
+    }
+    post
+}
+
+/// Scores posteriors given per round (e.g. [`dawid_skene`]'s) on the scored rounds, predicting a
+/// label when its posterior exceeds 1/2.
+pub fn score_posteriors(
+    rounds: &[ParsedRound],
+    post: &[Vec<f64>],
+    n_hist: usize,
+    l: usize,
+    eps: f64,
+) -> Scores {
+    let mut acc = MetricsAcc::new(l, eps);
+    for (r, p) in rounds.iter().zip(post).skip(n_hist) {
+        if let Some(truth) = &r.truth {
+            let pred: Vec<u8> = p.iter().map(|&q| (q > 0.5) as u8).collect();
+            acc.add(&pred, p, truth, None);
+        }
+    }
+    acc.finish()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::Round;
+
+    fn round(present: Vec<bool>, reports: Vec<u8>, truth: Option<Vec<u8>>) -> ParsedRound {
+        ParsedRound {
+            line: 0,
+            id: String::new(),
+            round: Round {
+                context: vec![1.0],
+                present,
+                reports,
+            },
+            truth,
+        }
+    }
+
+    #[test]
+    fn hiding_keeps_exactly_n_history_labels_and_every_test_label() {
+        let rounds: Vec<ParsedRound> = (0..100)
+            .map(|t| {
+                round(
+                    vec![true],
+                    vec![0],
+                    if t % 10 == 3 { None } else { Some(vec![1]) },
+                )
+            })
+            .collect();
+        let (h, kept) = hide_labels(&rounds, 70, Some(12), 5);
+        assert_eq!(kept, 12);
+        assert_eq!(h[..70].iter().filter(|r| r.truth.is_some()).count(), 12);
+        assert!(h[70..]
+            .iter()
+            .zip(&rounds[70..])
+            .all(|(a, b)| a.truth == b.truth));
+        let (again, _) = hide_labels(&rounds, 70, Some(12), 5);
+        assert!(h.iter().zip(&again).all(|(a, b)| a.truth == b.truth));
+        let (other, _) = hide_labels(&rounds, 70, Some(12), 6);
+        assert!(h.iter().zip(&other).any(|(a, b)| a.truth != b.truth));
+        let (all, kept) = hide_labels(&rounds, 70, None, 5);
+        assert_eq!(kept, 63);
+        assert!(all.iter().zip(&rounds).all(|(a, b)| a.truth == b.truth));
+    }
+
+    #[test]
+    fn dawid_skene_finds_the_reliable_reporter() {
+        // Reporter 0 is right 95% of the time, reporters 1 and 2 are coins: DS should follow 0,
+        // where majority vote follows the coins half the time.
+        let mut s = 3u64;
+        let mut f = || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (s >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let mut rounds = Vec::new();
+        for _ in 0..600 {
+            let y = (f() < 0.3) as u8;
+            let r0 = y ^ (f() < 0.05) as u8;
+            let r1 = (f() < 0.5) as u8;
+            let r2 = (f() < 0.5) as u8;
+            rounds.push(round(vec![true; 3], vec![r0, r1, r2], Some(vec![y])));
+        }
+        let post = dawid_skene(&rounds, 3, 1, 100, 0.01);
+        let s = score_posteriors(&rounds, &post, 0, 1, 1e-6);
+        assert!(s.hamming < 0.08, "{}", s.hamming);
+    }
+}
