@@ -621,9 +621,11 @@ impl Engine {
         self.corr
             .push(&lr.round.present, &lr.round.reports, &lr.truth);
         debug_assert_eq!(lr.q.len(), l);
-        self.threshold.push(&lr.q, &lr.truth);
         if self.adaptive.is_some() {
+            // Also pushes to the threshold fitter (what it fits on depends on the mode).
             self.ad_apply(lr, outcome);
+        } else {
+            self.threshold.push(&lr.q, &lr.truth);
         }
         self.labelled += 1;
         if self.adaptive.is_some() {

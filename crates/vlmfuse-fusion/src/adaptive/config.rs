@@ -60,11 +60,16 @@ pub enum Reputation {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum SoftTruth {
-    /// The calibrated posterior: the best estimate of `P(y = 1)` the engine has.
+    /// The Dawid–Skene posterior proper: `sigmoid(logit(pi) + sum_i lambda_ik)` with every
+    /// weight one and no guardrail, as classical EM has it. Reputations and the guardrail shape
+    /// the prediction; fed back into the soft truths they would shrink the evidence a little at
+    /// every pass, and EM would drift toward reporters that look like coins.
     #[default]
-    Calibrated,
-    /// The raw Dawid–Skene posterior `sigmoid(z)`, as classical EM has it.
+    Ds,
+    /// The fused posterior before calibration, `sigmoid(z)`.
     Raw,
+    /// The calibrated posterior.
+    Calibrated,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -160,6 +165,11 @@ pub struct AdaptiveConfig {
     /// Smallest Platt slope: calibration may flatten a logit, never invert it.
     pub calib_min_slope: f64,
 
+    /// Serve majority vote (as the cold model's posterior) until the model's own decisions,
+    /// scored on each labelled round before its label is learned, have made fewer Hamming
+    /// errors than the vote's with a micro-F1 no lower. With no labels nothing says the learned reliabilities beat a
+    /// vote; after a few dozen labels the comparison does.
+    pub vote_fallback: bool,
     /// Decision threshold until `threshold_min_rounds` rounds are labelled: the grid point just
     /// above 1/2, so a label is on when its posterior is MORE than one half (the Bayes rule for
     /// Hamming loss on calibrated posteriors, and majority vote's "more than half" on a tie).
@@ -186,7 +196,7 @@ impl Default for AdaptiveConfig {
             prior_pi_strength: 2.0,
             local_pi_strength: 2.0,
             unlabelled_weight: 1.0,
-            soft_truth: SoftTruth::Raw,
+            soft_truth: SoftTruth::Ds,
             guardrail: Guardrail::Pool,
             corr_shrink: 50.0,
             unlabelled_ramp: 20.0,
@@ -200,8 +210,8 @@ impl Default for AdaptiveConfig {
             reputation: Reputation::Discounted,
             credit_memory: 30.0,
             credit_prior_rounds: 10.0,
-            reputation_beta: 4.0,
-            credit_cap: 0.5,
+            reputation_beta: 8.0,
+            credit_cap: 0.25,
             fixed_share: 0.03,
             calibration: true,
             calib_window: 500,
@@ -209,6 +219,7 @@ impl Default for AdaptiveConfig {
             calib_pooled_prior: 5.0,
             calib_newton_steps: 1,
             calib_min_slope: 0.05,
+            vote_fallback: true,
             threshold_initial: 0.505,
             threshold_min_rounds: 20,
             threshold_shrink: 100.0,
@@ -237,6 +248,7 @@ impl AdaptiveConfig {
             threshold_initial,
             threshold_min_rounds,
             threshold_shrink: 0.0,
+            vote_fallback: false,
             ..Self::default()
         }
     }
@@ -304,6 +316,20 @@ impl AdaptiveConfig {
             return Err("calib_min_slope must be finite and >= 0".into());
         }
         nonneg(self.threshold_shrink, "threshold_shrink")?;
+        if self.vote_fallback {
+            // sigmoid(ln(tpr / fpr)): the vote's posterior with a one-vote majority.
+            let top = self.prior_tpr / (self.prior_tpr + self.prior_fpr);
+            if !(self.threshold_initial > 0.5 && self.threshold_initial < top) {
+                return Err(format!(
+                    "with vote_fallback, threshold_initial must lie in (0.5, {top:.3}) so that the \
+                     vote's posterior decides as majority vote does, got {}",
+                    self.threshold_initial
+                ));
+            }
+            if self.prior_tpr <= self.prior_fpr {
+                return Err("with vote_fallback, prior_tpr must exceed prior_fpr".into());
+            }
+        }
         if !(0.0..=1.0).contains(&self.threshold_initial) {
             return Err("threshold_initial must lie in [0, 1]".into());
         }

@@ -68,6 +68,44 @@ pub struct Adaptive {
     /// Unlabelled entries re-estimated so far (a statistic).
     em_updates: u64,
     pub(crate) credit: CreditState,
+    /// Decisions of the model and of majority vote scored on the labelled rounds (the vote
+    /// fallback serves the vote until the model has done better on both counts).
+    model_score: Tally,
+    vote_score: Tally,
+}
+
+/// True positives, false positives and false negatives of a stream of decisions.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Tally {
+    pub tp: u64,
+    pub fp: u64,
+    pub fneg: u64,
+}
+
+impl Tally {
+    fn add(&mut self, pred: bool, y: bool) {
+        match (pred, y) {
+            (true, true) => self.tp += 1,
+            (true, false) => self.fp += 1,
+            (false, true) => self.fneg += 1,
+            _ => {}
+        }
+    }
+
+    /// Hamming errors.
+    pub fn errors(&self) -> u64 {
+        self.fp + self.fneg
+    }
+
+    /// Micro-F1 (1 with no positive at all).
+    pub fn f1(&self) -> f64 {
+        let den = 2 * self.tp + self.fp + self.fneg;
+        if den == 0 {
+            1.0
+        } else {
+            2.0 * self.tp as f64 / den as f64
+        }
+    }
 }
 
 /// What the reputation update remembers of past credits.
@@ -139,6 +177,8 @@ impl Adaptive {
                 count: vec![0.0; n],
                 ..Default::default()
             },
+            model_score: Tally::default(),
+            vote_score: Tally::default(),
         }
     }
 
@@ -153,6 +193,26 @@ impl Adaptive {
     pub fn em_updates(&self) -> u64 {
         self.em_updates
     }
+
+    /// How the model's and majority vote's decisions scored on the labelled rounds.
+    pub fn scores(&self) -> (Tally, Tally) {
+        (self.model_score, self.vote_score)
+    }
+}
+
+/// Majority vote of a round: a label is on when MORE than half of the present reporters report
+/// it (SPEC §6).
+pub fn majority_vote(round: &Round, l: usize) -> Vec<u8> {
+    let n = round.present.len();
+    let present = round.present.iter().filter(|&&p| p).count();
+    (0..l)
+        .map(|k| {
+            let votes = (0..n)
+                .filter(|&i| round.present[i] && round.reports[i * l + k] != 0)
+                .count();
+            (2 * votes > present) as u8
+        })
+        .collect()
 }
 
 use pool::decay;
@@ -596,6 +656,15 @@ impl Engine {
                 .iter()
                 .map(|&z| clip(sigmoid(z), s.eps))
                 .collect(),
+            (SoftTruth::Ds, _) => {
+                let mut pure = s.clone();
+                pure.w.iter_mut().for_each(|w| *w = 1.0);
+                pure.rho.iter_mut().for_each(|r| *r = 0.0);
+                pure.fused_logit()
+                    .iter()
+                    .map(|&z| clip(sigmoid(z), s.eps))
+                    .collect()
+            }
         }
     }
 
@@ -604,8 +673,14 @@ impl Engine {
         let scan = pool.scan(&round.context, self.labelled);
         let nb: Vec<(usize, f64)> = scan.top.iter().map(|n| (n.pos as usize, n.sim)).collect();
         let signals = self.ad_signals(&round.present, &round.reports, &nb, self.labelled);
-        let q = self.ad_posterior(&signals);
-        let thresholds = self.ad_thresholds();
+        let (q, thresholds) = if self.ad_voting() {
+            (
+                self.vote_posterior(round),
+                vec![self.cfg.adaptive.threshold_initial; self.ontology.len()],
+            )
+        } else {
+            (self.ad_posterior(&signals), self.ad_thresholds())
+        };
         let pred = q
             .iter()
             .zip(&thresholds)
@@ -619,6 +694,34 @@ impl Engine {
             w_used: self.w.clone(),
             scan: Some(scan),
         }
+    }
+
+    /// Whether the vote fallback is serving majority vote: until the model's decisions, over the
+    /// labelled rounds, have made strictly fewer Hamming errors than the vote's AND have a
+    /// micro-F1 at least the vote's (so always with no labels, and on a tie).
+    pub fn ad_voting(&self) -> bool {
+        let ad = self.ad();
+        let (m, v) = (&ad.model_score, &ad.vote_score);
+        self.cfg.adaptive.vote_fallback && !(m.errors() < v.errors() && m.f1() >= v.f1())
+    }
+
+    /// The vote's posterior: `sigmoid(c (yes - no))` over the present reporters, `c =
+    /// ln(prior_tpr / prior_fpr)`: every reporter equally reliable, even odds. At the initial
+    /// threshold (in `(1/2, sigmoid(c))`) its decisions are majority vote's exactly.
+    fn vote_posterior(&self, round: &Round) -> Vec<f64> {
+        let a = &self.cfg.adaptive;
+        let l = self.ontology.len();
+        let yes = (a.prior_tpr / a.prior_fpr).ln();
+        let no = -yes;
+        (0..l)
+            .map(|k| {
+                let z: f64 = (0..round.present.len())
+                    .filter(|&i| round.present[i])
+                    .map(|i| if round.reports[i * l + k] != 0 { yes } else { no })
+                    .sum();
+                clip(sigmoid(z), self.cfg.eps)
+            })
+            .collect()
     }
 
     /// The thresholds in force: the fitted ones shrunk toward `threshold_initial` by the labels
@@ -733,6 +836,32 @@ impl Engine {
     /// the pool first if it was never observed), its unlabelled neighbours are re-estimated, the
     /// calibration takes in the round's inference-time logits.
     pub(crate) fn ad_apply(&mut self, lr: &LabelledRound, outcome: Option<&FeedbackOutcome>) {
+        let l = lr.truth.len();
+        let parts = outcome.filter(|o| o.evidence.len() == l && o.prior_logit.len() == l);
+        // The model's posteriors for this round, from its inference-time evidence and prior under
+        // the current calibration (which has not seen this label yet): what the threshold is
+        // fitted on, and what the vote fallback scores. Without them (a rebuild that carries no
+        // outcome, or calibration off) the posteriors the round was served.
+        let model_q: Vec<f64> = match parts {
+            Some(o) if self.cfg.adaptive.calibration => {
+                let calib = &self.ad().calib;
+                (0..l)
+                    .map(|k| clip(calib.apply(k, o.evidence[k], o.prior_logit[k]), self.cfg.eps))
+                    .collect()
+            }
+            _ => lr.q.clone(),
+        };
+        if self.cfg.adaptive.vote_fallback && parts.is_some() {
+            let t = self.ad_thresholds();
+            let vote = majority_vote(&lr.round, l);
+            let ad = self.ad_mut();
+            for k in 0..l {
+                let y = lr.truth[k] != 0;
+                ad.model_score.add(model_q[k] >= t[k], y);
+                ad.vote_score.add(vote[k] != 0, y);
+            }
+        }
+        self.threshold.push(&model_q, &lr.truth);
         let pos = match self.ad().pool.position(lr.seq) {
             Some(pos) => {
                 if self.ad().pool.is_labelled(pos) {
@@ -764,9 +893,7 @@ impl Engine {
             }
         };
         if self.cfg.adaptive.calibration {
-            let l = lr.truth.len();
-            if let Some(o) = outcome.filter(|o| o.evidence.len() == l && o.prior_logit.len() == l)
-            {
+            if let Some(o) = parts {
                 self.ad_mut().calib.push(&o.evidence, &o.prior_logit, &lr.truth);
             }
         }
