@@ -27,7 +27,7 @@ pub enum LabelerErrorKind {
 #[derive(Debug, thiserror::Error)]
 pub enum LabelerError {
     #[error("invalid ontology: {0}")]
-    Ontology(String),
+    Ontology(#[from] vlmfuse_core::OntologyError),
     #[error("invalid labeler config: {0}")]
     Config(String),
     #[error("asset not found: {0} (run scripts/fetch-assets.sh)")]

@@ -38,7 +38,7 @@ pub fn to_mask(ontology: &Ontology, ids: &[String]) -> Result<Vec<bool>, Labeler
     for id in ids {
         let k = ontology
             .index_of(id)
-            .ok_or_else(|| LabelerError::Ontology(format!("unknown label {id:?}")))?;
+            .ok_or_else(|| crate::OntologyError::UnknownLabel(id.clone()))?;
         m[k] = true;
     }
     Ok(m)

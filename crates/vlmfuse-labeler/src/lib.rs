@@ -17,7 +17,6 @@ mod error;
 pub mod eval;
 mod gguf;
 mod negation;
-mod ontology;
 mod openai;
 mod sp_tokenizer;
 
@@ -26,9 +25,9 @@ pub use encoder::SentenceEncoder;
 pub use error::{LabelerError, LabelerErrorKind};
 pub use gguf::{GgufConfig, GgufLabeler};
 pub use negation::{is_negated, split_clauses};
-pub use ontology::{LabelDef, Ontology};
 pub use openai::{OpenAiConfig, OpenAiLabeler};
 pub use sp_tokenizer::SpTokenizer;
+pub use vlmfuse_core::{Label, Ontology, OntologyError};
 
 use futures::future::BoxFuture;
 use serde::{Deserialize, Serialize};

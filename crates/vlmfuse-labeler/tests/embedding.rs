@@ -5,7 +5,7 @@ mod common;
 
 use std::sync::OnceLock;
 use vlmfuse_labeler::eval::{default_dataset_path, f1_scores, load_dataset, to_mask};
-use vlmfuse_labeler::{EmbeddingConfig, EmbeddingLabeler, LabelDef, Labeler, Ontology};
+use vlmfuse_labeler::{EmbeddingConfig, EmbeddingLabeler, Label, Labeler, Ontology};
 
 fn labeler() -> Option<&'static EmbeddingLabeler> {
     static L: OnceLock<Option<EmbeddingLabeler>> = OnceLock::new();
@@ -120,13 +120,13 @@ async fn async_trait_path_matches_blocking() {
 fn custom_ontology_works_from_names_and_descriptions() {
     let Some(a) = common::assets() else { return };
     let onto = Ontology::new(vec![
-        LabelDef::new("cyclist", "cyclist", Some("a cyclist riding on the road")),
-        LabelDef::new(
+        Label::new("cyclist", "cyclist", Some("a cyclist riding on the road")),
+        Label::new(
             "roadworks",
             "roadworks",
             Some("road works and construction cones"),
         ),
-        LabelDef::new("animal", "animal", Some("an animal on the road")),
+        Label::new("animal", "animal", Some("an animal on the road")),
     ])
     .unwrap();
     // Names and descriptions alone are weak prototypes; configured paraphrases extend them.
@@ -152,7 +152,7 @@ fn custom_ontology_works_from_names_and_descriptions() {
     // Unknown label ids in the config are rejected rather than ignored.
     let mut cfg = EmbeddingConfig::new(&a.minilm_dir);
     cfg.label_thresholds.insert("nope".into(), 0.5);
-    let onto = Ontology::new(vec![LabelDef::new("x", "x", None)]).unwrap();
+    let onto = Ontology::new(vec![Label::new("x", "x", None)]).unwrap();
     assert!(EmbeddingLabeler::load(onto, cfg).is_err());
 }
 

@@ -5,7 +5,7 @@
 mod common;
 
 use std::sync::OnceLock;
-use vlmfuse_labeler::{GgufConfig, GgufLabeler, LabelDef, Labeler, Ontology, SpTokenizer};
+use vlmfuse_labeler::{GgufConfig, GgufLabeler, Label, Labeler, Ontology, SpTokenizer};
 
 /// One model load for all tests (a load costs about a minute in a debug build). A small custom
 /// ontology checks that other label sets work and keeps the full-forward comparison cheap; the
@@ -15,14 +15,14 @@ fn small() -> Option<&'static GgufLabeler> {
     L.get_or_init(|| {
         let a = common::assets()?;
         let onto = Ontology::new(vec![
-            LabelDef::new(
+            Label::new(
                 "traffic_light_ahead",
                 "traffic light ahead",
                 Some("a traffic light"),
             ),
-            LabelDef::new("merge", "merge", Some("merging or changing lanes")),
-            LabelDef::new("cyclist", "cyclist", Some("a cyclist")),
-            LabelDef::new("snow", "snow", None),
+            Label::new("merge", "merge", Some("merging or changing lanes")),
+            Label::new("cyclist", "cyclist", Some("a cyclist")),
+            Label::new("snow", "snow", None),
         ])
         .unwrap();
         Some(GgufLabeler::load(onto, GgufConfig::new(&a.gemma_gguf)).expect("load gguf labeler"))

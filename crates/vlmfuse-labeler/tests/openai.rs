@@ -5,7 +5,7 @@ use axum::{extract::State, http::StatusCode, routing::post, Json, Router};
 use serde_json::{json, Value};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
-use vlmfuse_labeler::{LabelDef, Labeler, LabelerErrorKind, Ontology, OpenAiConfig, OpenAiLabeler};
+use vlmfuse_labeler::{Label, Labeler, LabelerErrorKind, Ontology, OpenAiConfig, OpenAiLabeler};
 
 #[derive(Clone, Default)]
 struct Fake {
@@ -153,8 +153,8 @@ async fn server_errors_are_retried_then_reported_as_http() {
 #[tokio::test]
 async fn custom_ontology_is_enforced() {
     let onto = Ontology::new(vec![
-        LabelDef::new("cat", "cat", None),
-        LabelDef::new("dog", "dog", Some("a dog is visible")),
+        Label::new("cat", "cat", None),
+        Label::new("dog", "dog", Some("a dog is visible")),
     ])
     .unwrap();
     let (_f, url) = start(vec![(200, r#"{"labels": ["dog"]}"#)]).await;

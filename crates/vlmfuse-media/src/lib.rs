@@ -124,36 +124,26 @@ pub struct ClipInfo {
     pub keyframe_interval_s: Option<f64>,
 }
 
-/// One sampled frame, packed RGB24.
-#[derive(Clone, PartialEq)]
-pub struct Frame {
+/// The shared frame type: packed RGB24 pixels and the presentation time (`pts_s`) of the
+/// picture actually returned.
+pub use vlmfuse_core::Frame;
+
+/// One sampled frame: the [`Frame`] plus where it sits in the sample. Derefs to the frame, so
+/// `f.rgb`, `f.width` and `f.pts_s` read as before; [`SampledFrame::frame`] is what models take.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SampledFrame {
     /// Position in the sample, 0-based.
     pub index: usize,
-    /// The time this frame was sampled for, seconds from the start of the video stream.
+    /// The time this frame was sampled for, seconds from the start of the video stream; the
+    /// frame's `pts_s` is the first frame at or after it (or the last frame of the clip).
     pub target_s: f64,
-    /// Presentation time of the frame actually returned, seconds from the start of the video
-    /// stream: the first frame at or after `target_s` (or the last frame of the clip).
-    pub pts_s: f64,
-    /// Pixels.
-    pub width: u32,
-    /// Pixels.
-    pub height: u32,
-    /// `width * height * 3` bytes, row-major, no row padding, so it can be handed to a tensor
-    /// library as is.
-    pub rgb: Vec<u8>,
+    pub frame: Frame,
 }
 
-impl std::fmt::Debug for Frame {
-    // The pixel buffer is megabytes: printing it would drown any log or test failure.
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Frame")
-            .field("index", &self.index)
-            .field("target_s", &self.target_s)
-            .field("pts_s", &self.pts_s)
-            .field("width", &self.width)
-            .field("height", &self.height)
-            .field("rgb_len", &self.rgb.len())
-            .finish()
+impl std::ops::Deref for SampledFrame {
+    type Target = Frame;
+    fn deref(&self) -> &Frame {
+        &self.frame
     }
 }
 
@@ -161,7 +151,7 @@ impl std::fmt::Debug for Frame {
 #[derive(Debug, Clone, PartialEq)]
 pub struct DecodedClip {
     pub info: ClipInfo,
-    pub frames: Vec<Frame>,
+    pub frames: Vec<SampledFrame>,
 }
 
 impl DecodedClip {

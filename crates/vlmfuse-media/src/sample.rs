@@ -9,8 +9,8 @@ use ffmpeg_next as ff;
 use crate::convert::{output_size, Converter};
 use crate::probe::Opened;
 use crate::{
-    target_times, DecodedClip, Frame, FrameSize, MediaError, SampleOptions, MAX_OUTPUT_SIDE,
-    MAX_SAMPLE_FRAMES,
+    target_times, DecodedClip, Frame, FrameSize, MediaError, SampleOptions, SampledFrame,
+    MAX_OUTPUT_SIDE, MAX_SAMPLE_FRAMES,
 };
 
 /// How [`crate::sample_frames_with_policy`] walks through the clip. All policies return the
@@ -107,30 +107,32 @@ pub(crate) fn run(
     let mut engine = Engine::new(opened, policy)?;
     let mut converter = Converter::new(opts.size);
     let targets = target_times(info.duration_s, opts.frames);
-    let mut frames: Vec<Frame> = Vec::with_capacity(targets.len());
+    let mut frames: Vec<SampledFrame> = Vec::with_capacity(targets.len());
     for (index, &target) in targets.iter().enumerate() {
         let pts = engine.advance_to(target, info.duration_s)?;
         let previous = frames.last().filter(|f| f.pts_s == pts);
         let frame = match previous {
             // The same picture answers two targets (more targets than frames): skip the
             // conversion.
-            Some(prev) => Frame {
+            Some(prev) => SampledFrame {
                 index,
                 target_s: target,
-                ..prev.clone()
+                frame: prev.frame.clone(),
             },
             None => {
                 let Some((_, picture)) = engine.current.as_ref() else {
                     return Err(MediaError::Internal("no current frame".into()));
                 };
                 let (width, height, rgb) = converter.convert(picture)?;
-                Frame {
+                SampledFrame {
                     index,
                     target_s: target,
-                    pts_s: pts,
-                    width,
-                    height,
-                    rgb,
+                    frame: Frame {
+                        width,
+                        height,
+                        rgb,
+                        pts_s: pts,
+                    },
                 }
             }
         };

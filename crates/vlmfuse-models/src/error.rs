@@ -62,6 +62,12 @@ pub enum ModelError {
     Timeout { what: String, after: Duration },
 }
 
+impl From<vlmfuse_core::FrameError> for ModelError {
+    fn from(e: vlmfuse_core::FrameError) -> Self {
+        ModelError::InvalidInput(e.to_string())
+    }
+}
+
 fn fmt_paths(p: &[PathBuf]) -> String {
     if p.is_empty() {
         return "(nowhere)".into();

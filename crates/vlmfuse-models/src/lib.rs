@@ -6,7 +6,6 @@ pub mod device;
 pub mod embed;
 mod error;
 pub mod fixtures;
-mod frames;
 pub mod lora;
 pub mod reporter;
 pub mod weights;
@@ -14,9 +13,9 @@ pub mod weights;
 pub use device::parse_device;
 pub use embed::{ClipEmbedder, ContextEmbedder};
 pub use error::ModelError;
-pub use frames::{Frame, FrameRef};
 pub use reporter::{
     run_all, CandleVlmConfig, CandleVlmReporter, ClipInput, ClipMeta, OpenAiReporter,
     OpenAiReporterConfig, Reporter, ReporterFailure, ReporterOutput, DEFAULT_PROMPT,
 };
+pub use vlmfuse_core::{Frame, FrameRef};
 pub use weights::WeightSource;

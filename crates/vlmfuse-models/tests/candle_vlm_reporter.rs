@@ -64,7 +64,7 @@ fn clip_frames(dir: &Path) -> Vec<Frame> {
                 width: w,
                 height: h,
                 rgb: c.to_vec(),
-                t_s: i as f64 / 5.0,
+                pts_s: i as f64 / 5.0,
             })
             .collect();
     }
@@ -76,7 +76,7 @@ fn clip_frames(dir: &Path) -> Vec<Frame> {
             rgb: (0..frame_len)
                 .map(|i| ((i * 13 + k * 41) % 256) as u8)
                 .collect(),
-            t_s: k as f64 / 5.0,
+            pts_s: k as f64 / 5.0,
         })
         .collect()
 }
@@ -203,7 +203,7 @@ fn bad_inputs_are_errors_not_panics() {
         width: 4,
         height: 4,
         rgb: vec![0; 5],
-        t_s: 0.0,
+        pts_s: 0.0,
     };
     assert_eq!(
         r.generate_blocking(&[bad], &AtomicBool::new(false))

@@ -108,7 +108,7 @@ fn clip(dir: &std::path::Path) -> ClipInput {
             rgb: (0..36u8)
                 .map(|i| i.wrapping_mul(7).wrapping_add(k * 50))
                 .collect(),
-            t_s: k as f64,
+            pts_s: k as f64,
         })
         .collect();
     ClipInput {

@@ -442,7 +442,7 @@ impl Config {
                 ));
             }
         }
-        Ontology::new(self.ontology.labels().to_vec())?;
+        Ontology::new(self.ontology.labels().to_vec()).map_err(|e| e.to_string())?;
         Ok(())
     }
 

@@ -538,7 +538,7 @@ mod tests {
             width: 4,
             height: 2,
             rgb: (0..24).map(|i| (i * 10) as u8).collect(),
-            t_s: 0.0,
+            pts_s: 0.0,
         };
         let png = frame_data_url(&f, FrameFormat::Png, 90).unwrap();
         let b64 = png.strip_prefix("data:image/png;base64,").unwrap();

@@ -272,16 +272,8 @@ async fn process(st: &AppState, p: &Arc<Pipeline>, up: &Upload) -> Result<Proces
         fps: info.fps,
         timestamps_s: decoded.timestamps(),
     };
-    let frames: Arc<[vlmfuse_models::Frame]> = decoded
-        .frames
-        .into_iter()
-        .map(|f| vlmfuse_models::Frame {
-            width: f.width,
-            height: f.height,
-            rgb: f.rgb,
-            t_s: f.pts_s,
-        })
-        .collect();
+    let frames: Arc<[vlmfuse_models::Frame]> =
+        decoded.frames.into_iter().map(|f| f.frame).collect();
 
     let start = Instant::now();
     let embedder = p.embedder.clone().expect("checked before");

@@ -204,14 +204,7 @@ fn entry_name(name: &Option<String>, model: &str) -> String {
     name.clone().unwrap_or_else(|| model.to_string())
 }
 
-/// The labeler speaks the fusion ontology's ids, so its labels need no translation.
+/// The labeler and the engine share one ontology type, so its labels need no translation.
 fn labeler_ontology(cfg: &Config) -> Result<vlmfuse_labeler::Ontology, String> {
-    vlmfuse_labeler::Ontology::new(
-        cfg.ontology
-            .labels()
-            .iter()
-            .map(|l| vlmfuse_labeler::LabelDef::new(&l.id, &l.name, l.description.as_deref()))
-            .collect(),
-    )
-    .map_err(|e| format!("ontology: {e}"))
+    Ok(cfg.ontology.clone())
 }
