@@ -4,6 +4,8 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
+use vlmfuse_core::chat::ChatError;
+
 /// Why a model backend failed.
 #[derive(Debug, thiserror::Error)]
 pub enum ModelError {
@@ -65,6 +67,37 @@ pub enum ModelError {
 impl From<vlmfuse_core::FrameError> for ModelError {
     fn from(e: vlmfuse_core::FrameError) -> Self {
         ModelError::InvalidInput(e.to_string())
+    }
+}
+
+/// The shared chat client's failures, in this crate's terms (the wording is unchanged: the
+/// timeout names the endpoint and the attempt).
+impl From<ChatError> for ModelError {
+    fn from(e: ChatError) -> Self {
+        match e {
+            ChatError::Remote {
+                endpoint,
+                status,
+                attempts,
+                message,
+            } => ModelError::Remote {
+                endpoint,
+                status,
+                attempts,
+                message,
+            },
+            ChatError::Timeout {
+                endpoint,
+                attempt,
+                after,
+            } => ModelError::Timeout {
+                what: format!("POST {endpoint} (attempt {attempt})"),
+                after,
+            },
+            ChatError::BadResponse { endpoint, message } => {
+                ModelError::BadResponse { endpoint, message }
+            }
+        }
     }
 }
 

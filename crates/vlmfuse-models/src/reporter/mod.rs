@@ -5,9 +5,7 @@ pub mod candle_vlm;
 mod openai;
 
 pub use candle_vlm::{CandleVlmConfig, CandleVlmReporter, Generation, QwenVlEngine};
-pub use openai::{
-    shared_http_client, FrameFormat, OpenAiMode, OpenAiReporter, OpenAiReporterConfig,
-};
+pub use openai::{FrameFormat, OpenAiMode, OpenAiReporter, OpenAiReporterConfig};
 
 use std::panic::AssertUnwindSafe;
 use std::path::PathBuf;
