@@ -14,7 +14,8 @@ use vlmfuse_labeler::eval::{
     default_dataset_path, f1_scores, load_dataset, to_mask, tune_thresholds,
 };
 use vlmfuse_labeler::{
-    EmbeddingConfig, EmbeddingLabeler, GgufConfig, GgufLabeler, LabelerError, Ontology,
+    BlockingLabeler, EmbeddingConfig, EmbeddingLabeler, GgufConfig, GgufLabeler, LabelerError,
+    Ontology,
 };
 
 fn arg_value(args: &[String], name: &str) -> Option<String> {

@@ -72,8 +72,8 @@ impl From<candle_core::Error> for LabelerError {
     }
 }
 
-impl From<tokio::task::JoinError> for LabelerError {
-    fn from(e: tokio::task::JoinError) -> Self {
+impl From<vlmfuse_core::BackendError> for LabelerError {
+    fn from(e: vlmfuse_core::BackendError) -> Self {
         LabelerError::Internal(format!("labeler worker failed: {e}"))
     }
 }

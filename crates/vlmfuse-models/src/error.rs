@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use vlmfuse_core::chat::ChatError;
+use vlmfuse_core::BackendError;
 
 /// Why a model backend failed.
 #[derive(Debug, thiserror::Error)]
@@ -62,6 +63,10 @@ pub enum ModelError {
     /// Something took longer than it was allowed to.
     #[error("{what} timed out after {:.3}s", .after.as_secs_f64())]
     Timeout { what: String, after: Duration },
+
+    /// The local backend's worker pool refused or lost the call (queue full, stopped, panicked).
+    #[error(transparent)]
+    Backend(#[from] BackendError),
 }
 
 impl From<vlmfuse_core::FrameError> for ModelError {
@@ -126,6 +131,10 @@ impl ModelError {
             ModelError::Remote { .. } => "remote",
             ModelError::BadResponse { .. } => "bad_response",
             ModelError::Timeout { .. } => "timeout",
+            ModelError::Backend(BackendError::QueueFull { .. }) => "busy",
+            ModelError::Backend(BackendError::TimedOut { .. }) => "timeout",
+            ModelError::Backend(BackendError::Stopped { .. }) => "stopped",
+            ModelError::Backend(BackendError::Panicked { .. }) => "panic",
         }
     }
 }

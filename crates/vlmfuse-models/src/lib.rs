@@ -11,11 +11,13 @@ pub mod reporter;
 pub mod weights;
 
 pub use device::parse_device;
-pub use embed::{ClipEmbedder, ContextEmbedder};
+pub use embed::{ClipEmbedder, ContextEmbedder, Embedder};
 pub use error::ModelError;
 pub use reporter::{
-    run_all, CandleVlmConfig, CandleVlmReporter, ClipInput, ClipMeta, OpenAiReporter,
-    OpenAiReporterConfig, Reporter, ReporterFailure, ReporterOutput, DEFAULT_PROMPT,
+    run_all, CandleVlmConfig, CandleVlmReporter, ClipInput, ClipMeta, LocalReporter,
+    OpenAiReporter, OpenAiReporterConfig, Reporter, ReporterFailure, ReporterOutput, RoundReporter,
+    DEFAULT_PROMPT,
 };
+pub use vlmfuse_core::{BackendError, BackendPool, PoolConfig};
 pub use vlmfuse_core::{Frame, FrameRef};
 pub use weights::WeightSource;

@@ -17,7 +17,7 @@ use std::time::Instant;
 use tokio::io::AsyncWriteExt;
 use vlmfuse_fusion::RoundRecord;
 use vlmfuse_media::MediaError;
-use vlmfuse_models::{ClipInput, ClipMeta, FrameRef};
+use vlmfuse_models::{ClipInput, ClipMeta};
 
 /// One uploaded clip, spooled to a temporary file that is removed when this is dropped.
 struct Upload {
@@ -277,14 +277,10 @@ async fn process(st: &AppState, p: &Arc<Pipeline>, up: &Upload) -> Result<Proces
 
     let start = Instant::now();
     let embedder = p.embedder.clone().expect("checked before");
-    let embed_frames = frames.clone();
-    let context = tokio::task::spawn_blocking(move || {
-        let refs: Vec<FrameRef> = embed_frames.iter().map(|f| f.as_ref()).collect();
-        embedder.embed(&refs)
-    })
-    .await
-    .map_err(|e| ApiError::Internal(format!("embedding task failed: {e}")))?
-    .map_err(|e| ApiError::Internal(format!("embedder: {e}")))?;
+    let context = embedder
+        .embed(frames.clone())
+        .await
+        .map_err(|e| ApiError::Internal(format!("embedder: {e}")))?;
     timings.push(("embed".into(), stage("embed", start)));
 
     let start = Instant::now();
@@ -299,16 +295,7 @@ async fn process(st: &AppState, p: &Arc<Pipeline>, up: &Upload) -> Result<Proces
             height: Some(info.height),
         },
     };
-    let runs = futures::future::join_all(p.reporters.iter().map(|r| {
-        let input = &input;
-        async move {
-            vlmfuse_models::run_all(std::slice::from_ref(&r.reporter), input, r.timeout)
-                .await
-                .pop()
-                .expect("one reporter, one result")
-        }
-    }))
-    .await;
+    let runs = vlmfuse_models::run_all(&p.reporters, &input).await;
     timings.push(("reporters".into(), stage("reporters", start)));
 
     let start = Instant::now();

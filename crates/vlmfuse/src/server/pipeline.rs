@@ -8,18 +8,12 @@ use crate::config::{Config, LabelerKind, ReporterBackend};
 use std::sync::Arc;
 use std::time::Duration;
 use vlmfuse_labeler::Labeler;
-use vlmfuse_models::{ContextEmbedder, Reporter};
-
-/// One loaded reporter and its timeout per round.
-pub struct LoadedReporter {
-    pub reporter: Arc<dyn Reporter>,
-    pub timeout: Duration,
-}
+use vlmfuse_models::{BackendPool, Embedder, PoolConfig, Reporter, RoundReporter};
 
 #[derive(Default)]
 pub struct Pipeline {
-    pub embedder: Option<Arc<dyn ContextEmbedder>>,
-    pub reporters: Vec<LoadedReporter>,
+    pub embedder: Option<Arc<Embedder>>,
+    pub reporters: Vec<RoundReporter>,
     pub labeler: Option<Arc<dyn Labeler>>,
     /// Name of the labeler, as responses report it.
     pub labeler_name: String,
@@ -54,9 +48,11 @@ impl Pipeline {
         let embedder = cfg.embedder.clone().map(|e| {
             tokio::task::spawn_blocking(move || {
                 let device = vlmfuse_models::parse_device(&e.device).map_err(|x| x.to_string())?;
-                vlmfuse_models::ClipEmbedder::load(&e.weights, &device)
-                    .map(|m| Arc::new(m) as Arc<dyn ContextEmbedder>)
-                    .map_err(|x| format!("{} ({}): {x}", e.weights.describe(), e.device))
+                let model = vlmfuse_models::ClipEmbedder::load(&e.weights, &device)
+                    .map_err(|x| format!("{} ({}): {x}", e.weights.describe(), e.device))?;
+                Embedder::new(Arc::new(model), PoolConfig::default())
+                    .map(Arc::new)
+                    .map_err(|x| format!("embedder worker: {x}"))
             })
         });
 
@@ -68,6 +64,7 @@ impl Pipeline {
             .map(|entry| {
                 let name = entry.name();
                 let timeout = Duration::from_secs_f64(entry.round_timeout_s);
+                let name_for_pool = name.clone();
                 let task =
                     tokio::task::spawn_blocking(move || -> Result<Arc<dyn Reporter>, String> {
                         match entry.backend {
@@ -78,9 +75,11 @@ impl Pipeline {
                                     .map_err(|e| e.to_string())
                             }
                             ReporterBackend::Candle(c) => {
-                                vlmfuse_models::CandleVlmReporter::load(c)
-                                    .map(|r| Arc::new(r) as Arc<dyn Reporter>)
-                                    .map_err(|e| e.to_string())
+                                let r = vlmfuse_models::CandleVlmReporter::load(c)
+                                    .map_err(|e| e.to_string())?;
+                                BackendPool::new(name_for_pool, Arc::new(r), PoolConfig::default())
+                                    .map(|p| Arc::new(p) as Arc<dyn Reporter>)
+                                    .map_err(|e| format!("reporter worker: {e}"))
                             }
                         }
                     });
@@ -115,9 +114,9 @@ impl Pipeline {
                     if let Some(t) = lc.threshold {
                         ec.threshold = t;
                     }
-                    vlmfuse_labeler::EmbeddingLabeler::load(ontology, ec)
-                        .map(|l| Arc::new(l) as Arc<dyn Labeler>)
-                        .map_err(|e| format!("embedding labeler: {e}"))
+                    let l = vlmfuse_labeler::EmbeddingLabeler::load(ontology, ec)
+                        .map_err(|e| format!("embedding labeler: {e}"))?;
+                    pooled_labeler(l)
                 }
                 LabelerKind::Gguf => {
                     let path = lc
@@ -128,9 +127,9 @@ impl Pipeline {
                     if let Some(t) = lc.threshold {
                         gc.threshold = t;
                     }
-                    vlmfuse_labeler::GgufLabeler::load(ontology, gc)
-                        .map(|l| Arc::new(l) as Arc<dyn Labeler>)
-                        .map_err(|e| format!("gguf labeler: {e}"))
+                    let l = vlmfuse_labeler::GgufLabeler::load(ontology, gc)
+                        .map_err(|e| format!("gguf labeler: {e}"))?;
+                    pooled_labeler(l)
                 }
                 LabelerKind::Openai => {
                     let mut oc = vlmfuse_labeler::OpenAiConfig::default();
@@ -170,7 +169,7 @@ impl Pipeline {
         }
         for (name, timeout, task) in reporters {
             match task.await {
-                Ok(Ok(reporter)) => p.reporters.push(LoadedReporter { reporter, timeout }),
+                Ok(Ok(reporter)) => p.reporters.push(RoundReporter::new(reporter, timeout)),
                 Ok(Err(e)) => {
                     p.failed.push(format!("reporter {name}: {e}"));
                     p.unloaded_reporters
@@ -198,6 +197,14 @@ impl Pipeline {
         }
         p
     }
+}
+
+/// A local labeler behind its own worker thread.
+fn pooled_labeler<L: vlmfuse_labeler::BlockingLabeler>(l: L) -> Result<Arc<dyn Labeler>, String> {
+    let name = vlmfuse_labeler::BlockingLabeler::name(&l).to_string();
+    BackendPool::new(name, Arc::new(l), PoolConfig::default())
+        .map(|p| Arc::new(p) as Arc<dyn Labeler>)
+        .map_err(|e| format!("labeler worker: {e}"))
 }
 
 fn entry_name(name: &Option<String>, model: &str) -> String {
