@@ -3,7 +3,6 @@
 //! the service persists it and `eval` replays it.
 
 pub mod bank;
-pub mod bench;
 pub mod config;
 pub mod corr;
 pub mod engine;

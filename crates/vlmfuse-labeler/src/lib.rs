@@ -14,7 +14,6 @@ pub mod assets;
 mod embedding;
 mod encoder;
 mod error;
-pub mod eval;
 mod gguf;
 mod negation;
 mod openai;

@@ -4,11 +4,11 @@
 mod common;
 
 use std::sync::{Arc, OnceLock};
-use vlmfuse_labeler::eval::{default_dataset_path, f1_scores, load_dataset, to_mask};
 use vlmfuse_labeler::{
     BackendPool, BlockingLabeler, EmbeddingConfig, EmbeddingLabeler, Label, Labeler, Ontology,
     PoolConfig,
 };
+use vlmfuse_testkit::labeler_eval::{default_dataset_path, f1_scores, load_dataset, to_mask};
 
 fn labeler() -> Option<&'static Arc<EmbeddingLabeler>> {
     static L: OnceLock<Option<Arc<EmbeddingLabeler>>> = OnceLock::new();

@@ -5,7 +5,6 @@
 //! output: N native-size RGB24 frames, the first frame at or after each target time.
 
 use std::path::Path;
-use std::process::Command;
 use std::time::{Duration, Instant};
 
 use vlmfuse_media::{
@@ -13,20 +12,9 @@ use vlmfuse_media::{
     SampleOptions,
 };
 
-const REPEATS: usize = 3;
+use vlmfuse_testkit::clips::ffmpeg;
 
-fn ffmpeg(args: &[String]) {
-    let out = Command::new("ffmpeg")
-        .args(["-hide_banner", "-loglevel", "error", "-nostdin", "-y"])
-        .args(args)
-        .output()
-        .expect("the ffmpeg CLI must be installed");
-    assert!(
-        out.status.success(),
-        "ffmpeg failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
+const REPEATS: usize = 3;
 
 fn make_clip(path: &Path, gop: Option<u32>) {
     let mut args: Vec<String> = [

@@ -1,11 +1,28 @@
 //! The one error type of the crate.
 //!
 //! Uploads come from users, so most failures are the client's fault (a file that is not a
-//! video, too long, broken). The variants are split finely enough that the HTTP layer can
-//! tell the user *what* is wrong without parsing messages, and [`MediaError::is_client_error`]
-//! separates "fix your upload" (4xx) from "our fault" (5xx).
+//! video, too long, broken). The variants are split finely enough that a front end can tell the
+//! user *what* is wrong without parsing messages ([`MediaError::kind`]), and
+//! [`MediaError::class`] groups them by what the caller can do about it. This crate speaks no
+//! HTTP: the service maps classes to statuses in its one error-mapping place.
 
 use thiserror::Error;
+
+/// What the caller can do about a [`MediaError`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum MediaErrorClass {
+    /// The upload is bigger than the limit on bytes.
+    Oversized,
+    /// Not a container, or a codec this build cannot decode: send another format.
+    Unsupported,
+    /// Nothing usable was sent: an empty file, or impossible sampling options.
+    Malformed,
+    /// A real video that breaks a limit or is broken (no picture track, corrupt, too long,
+    /// too large a resolution).
+    Rejected,
+    /// The server's side (disk, FFmpeg internals): the upload may be fine.
+    Internal,
+}
 
 /// Why a clip could not be probed or sampled.
 #[derive(Debug, Error)]
@@ -58,10 +75,23 @@ pub enum MediaError {
 }
 
 impl MediaError {
-    /// Whether the request (the uploaded file or the options) is at fault, i.e. whether a
-    /// server should answer 4xx rather than 5xx.
+    /// Whether the request (the uploaded file or the options) is at fault rather than the
+    /// server.
     pub fn is_client_error(&self) -> bool {
-        !matches!(self, MediaError::Io(_) | MediaError::Internal(_))
+        self.class() != MediaErrorClass::Internal
+    }
+
+    pub fn class(&self) -> MediaErrorClass {
+        match self {
+            MediaError::TooLarge { .. } => MediaErrorClass::Oversized,
+            MediaError::NotVideo | MediaError::UnsupportedCodec(_) => MediaErrorClass::Unsupported,
+            MediaError::Empty | MediaError::InvalidOptions(_) => MediaErrorClass::Malformed,
+            MediaError::NoVideoStream
+            | MediaError::Corrupt(_)
+            | MediaError::TooLong { .. }
+            | MediaError::ResolutionTooHigh { .. } => MediaErrorClass::Rejected,
+            MediaError::Io(_) | MediaError::Internal(_) => MediaErrorClass::Internal,
+        }
     }
 
     /// A short, stable, machine-readable name for API responses and metric labels, so that
@@ -79,21 +109,6 @@ impl MediaError {
             MediaError::InvalidOptions(_) => "invalid_options",
             MediaError::Io(_) => "io",
             MediaError::Internal(_) => "internal",
-        }
-    }
-
-    /// The HTTP status a server would normally answer with, so that every front end maps
-    /// errors the same way (this crate does not depend on an HTTP library, hence the `u16`).
-    pub fn suggested_http_status(&self) -> u16 {
-        match self {
-            MediaError::TooLarge { .. } => 413,
-            MediaError::NotVideo | MediaError::UnsupportedCodec(_) => 415,
-            MediaError::Empty | MediaError::InvalidOptions(_) => 400,
-            MediaError::NoVideoStream
-            | MediaError::Corrupt(_)
-            | MediaError::TooLong { .. }
-            | MediaError::ResolutionTooHigh { .. } => 422,
-            MediaError::Io(_) | MediaError::Internal(_) => 500,
         }
     }
 }

@@ -5,7 +5,6 @@
 pub mod device;
 pub mod embed;
 mod error;
-pub mod fixtures;
 pub mod lora;
 pub mod reporter;
 pub mod weights;

@@ -175,8 +175,9 @@ pub fn load_adapter(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::fixtures::Rng;
     use candle_core::Device;
+    use vlmfuse_testkit::fixtures::RandomTensor;
+    use vlmfuse_testkit::rng::SplitMix64 as Rng;
 
     fn t(v: &[f32], shape: (usize, usize)) -> Tensor {
         Tensor::from_slice(v, shape, &Device::Cpu).unwrap()

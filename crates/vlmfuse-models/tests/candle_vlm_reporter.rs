@@ -9,11 +9,11 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use candle_core::{DType, Device, Tensor};
-use vlmfuse_models::fixtures::{write_hf_cache_entry, TinyQwen3Vl};
 use vlmfuse_models::{
     run_all, BackendPool, CandleVlmConfig, CandleVlmReporter, ClipInput, ClipMeta, Frame,
     LocalReporter, ModelError, PoolConfig, Reporter, ReporterFailure, RoundReporter, WeightSource,
 };
+use vlmfuse_testkit::fixtures::{write_hf_cache_entry, TinyQwen3Vl};
 
 const PROMPT: &str = "describe the dashcam clip";
 

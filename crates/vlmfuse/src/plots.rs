@@ -17,12 +17,13 @@ const PALETTE: [RGBColor; 8] = [
     RGBColor(127, 127, 127),
 ];
 
-fn err<E: std::fmt::Display>(path: &Path) -> impl Fn(E) -> String + '_ {
-    move |e| format!("{}: {e}", path.display())
+/// plotters' errors borrow the backend, so they are flattened to text with the file named.
+fn err<E: std::fmt::Display>(path: &Path) -> impl Fn(E) -> anyhow::Error + '_ {
+    move |e| anyhow::anyhow!("{}: {e}", path.display())
 }
 
 /// Writes every chart into `dir` and returns their paths.
-pub fn write_all(dir: &Path, run: &EvalRun) -> Result<Vec<PathBuf>, String> {
+pub fn write_all(dir: &Path, run: &EvalRun) -> anyhow::Result<Vec<PathBuf>> {
     std::fs::create_dir_all(dir).map_err(err(dir))?;
     let files = vec![
         reputations(&dir.join("reputations.svg"), run)?,
@@ -33,7 +34,7 @@ pub fn write_all(dir: &Path, run: &EvalRun) -> Result<Vec<PathBuf>, String> {
 }
 
 /// Reputation of every reporter after each round, with the end of the history marked.
-fn reputations(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
+fn reputations(path: &Path, run: &EvalRun) -> anyhow::Result<PathBuf> {
     let names = run.engine.reporters();
     let n = run.outcomes.len();
     let ymax = run
@@ -96,7 +97,7 @@ fn reputations(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
 }
 
 /// Reliability diagram of the fused posteriors on the scored rounds (10 equal-width bins).
-fn reliability(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
+fn reliability(path: &Path, run: &EvalRun) -> anyhow::Result<PathBuf> {
     let scores = &run.rows[0].scores;
     let root = SVGBackend::new(path, (640, 640)).into_drawing_area();
     root.fill(&WHITE).map_err(err(path))?;
@@ -165,7 +166,7 @@ fn reliability(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
 type Metric = fn(&vlmfuse_fusion::metrics::Scores) -> f64;
 
 /// Hamming, micro-F1 and macro-F1 of every row, side by side, like the paper's ablation figure.
-fn ablations(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
+fn ablations(path: &Path, run: &EvalRun) -> anyhow::Result<PathBuf> {
     let rows = &run.rows;
     let r = rows.len() as i32;
     let height = 140 + 34 * rows.len() as u32;
