@@ -94,9 +94,7 @@ impl GgufLabeler {
         }
         let device = Device::Cpu;
         let mut file = std::fs::File::open(&cfg.model_path)?;
-        let ct = gguf_file::Content::read(&mut file)
-            .map_err(|e| e.with_path(&cfg.model_path))
-            .map_err(|e| LabelerError::Model(e.to_string()))?;
+        let ct = gguf_file::Content::read(&mut file).map_err(|e| e.with_path(&cfg.model_path))?;
         let tok = SpTokenizer::from_gguf(&ct)?;
         let base = ModelWeights::from_gguf(ct, &mut file, &device)?;
         let ids = |pieces: &[&str]| -> Vec<u32> {

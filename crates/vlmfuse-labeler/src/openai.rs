@@ -105,7 +105,7 @@ impl OpenAiLabeler {
             // A well-formed HTTP exchange whose body is not an answer: worth another try.
             Err(ChatError::BadResponse { message, .. }) => Err(Attempt::Bad(message)),
             // The client has already retried what is worth retrying.
-            Err(e) => Err(Attempt::Fatal(LabelerError::Http(e.to_string()))),
+            Err(e) => Err(Attempt::Fatal(e.into())),
         }
     }
 

@@ -5,6 +5,7 @@
 //! `/v1/fuse` does not need it.
 
 use crate::config::{Config, LabelerConfig, ReporterBackend};
+use anyhow::{bail, Context};
 use std::sync::Arc;
 use std::time::Duration;
 use vlmfuse_labeler::Labeler;
@@ -47,12 +48,12 @@ impl Pipeline {
         // Embedder.
         let embedder = cfg.embedder.clone().map(|e| {
             tokio::task::spawn_blocking(move || {
-                let device = vlmfuse_models::parse_device(&e.device).map_err(|x| x.to_string())?;
+                let device = vlmfuse_models::parse_device(&e.device)?;
                 let model = vlmfuse_models::ClipEmbedder::load(&e.weights, &device)
-                    .map_err(|x| format!("{} ({}): {x}", e.weights.describe(), e.device))?;
-                Embedder::new(Arc::new(model), PoolConfig::default())
-                    .map(Arc::new)
-                    .map_err(|x| format!("embedder worker: {x}"))
+                    .with_context(|| format!("{} ({})", e.weights.describe(), e.device))?;
+                let pool = Embedder::new(Arc::new(model), PoolConfig::default())
+                    .context("embedder worker")?;
+                anyhow::Ok(Arc::new(pool))
             })
         });
 
@@ -66,22 +67,23 @@ impl Pipeline {
                 let timeout = Duration::from_secs_f64(entry.round_timeout_s);
                 let name_for_pool = name.clone();
                 let task =
-                    tokio::task::spawn_blocking(move || -> Result<Arc<dyn Reporter>, String> {
-                        match entry.backend {
+                    tokio::task::spawn_blocking(move || -> anyhow::Result<Arc<dyn Reporter>> {
+                        Ok(match entry.backend {
                             ReporterBackend::Openai(mut c) => {
                                 c.name = Some(entry_name(&c.name, &c.model));
-                                vlmfuse_models::OpenAiReporter::new(c)
-                                    .map(|r| Arc::new(r) as Arc<dyn Reporter>)
-                                    .map_err(|e| e.to_string())
+                                Arc::new(vlmfuse_models::OpenAiReporter::new(c)?)
                             }
                             ReporterBackend::Candle(c) => {
-                                let r = vlmfuse_models::CandleVlmReporter::load(c)
-                                    .map_err(|e| e.to_string())?;
-                                BackendPool::new(name_for_pool, Arc::new(r), PoolConfig::default())
-                                    .map(|p| Arc::new(p) as Arc<dyn Reporter>)
-                                    .map_err(|e| format!("reporter worker: {e}"))
+                                let r = vlmfuse_models::CandleVlmReporter::load(c)?;
+                                let pool = BackendPool::new(
+                                    name_for_pool,
+                                    Arc::new(r),
+                                    PoolConfig::default(),
+                                )
+                                .context("reporter worker")?;
+                                Arc::new(pool)
                             }
-                        }
+                        })
                     });
                 (name, timeout, task)
             })
@@ -94,26 +96,26 @@ impl Pipeline {
         let ontology = cfg.ontology.clone();
         let assets = cfg.assets();
         let lc = cfg.labeler.clone();
-        let labeler = tokio::task::spawn_blocking(move || -> Result<Arc<dyn Labeler>, String> {
+        let labeler = tokio::task::spawn_blocking(move || -> anyhow::Result<Arc<dyn Labeler>> {
             if !wanted {
-                return Err("not loaded: no clip pipeline is configured".into());
+                bail!("not loaded: no clip pipeline is configured");
             }
             match lc {
                 LabelerConfig::Embedding(lc) => {
                     let dir = lc.model_dir.clone().unwrap_or(assets.minilm_dir);
                     if !dir.join("model.safetensors").is_file() {
-                        return Err(format!(
+                        bail!(
                             "embedding labeler: no MiniLM model in {} (run scripts/fetch-assets.sh \
                              or set labeler.model_dir)",
                             dir.display()
-                        ));
+                        );
                     }
                     let mut ec = vlmfuse_labeler::EmbeddingConfig::new(dir);
                     if let Some(t) = lc.threshold {
                         ec.threshold = t;
                     }
                     let l = vlmfuse_labeler::EmbeddingLabeler::load(ontology, ec)
-                        .map_err(|e| format!("embedding labeler: {e}"))?;
+                        .context("embedding labeler")?;
                     pooled_labeler(l)
                 }
                 LabelerConfig::Gguf(lc) => {
@@ -122,8 +124,8 @@ impl Pipeline {
                     if let Some(t) = lc.threshold {
                         gc.threshold = t;
                     }
-                    let l = vlmfuse_labeler::GgufLabeler::load(ontology, gc)
-                        .map_err(|e| format!("gguf labeler: {e}"))?;
+                    let l =
+                        vlmfuse_labeler::GgufLabeler::load(ontology, gc).context("gguf labeler")?;
                     pooled_labeler(l)
                 }
                 LabelerConfig::Openai(lc) => {
@@ -143,9 +145,9 @@ impl Pipeline {
                     if let Some(t) = lc.timeout_s {
                         oc.timeout = Duration::from_secs_f64(t);
                     }
-                    vlmfuse_labeler::OpenAiLabeler::new(ontology, oc)
-                        .map(|l| Arc::new(l) as Arc<dyn Labeler>)
-                        .map_err(|e| format!("openai labeler: {e}"))
+                    let l = vlmfuse_labeler::OpenAiLabeler::new(ontology, oc)
+                        .context("openai labeler")?;
+                    Ok(Arc::new(l) as Arc<dyn Labeler>)
                 }
             }
         });
@@ -154,7 +156,7 @@ impl Pipeline {
             None => p.not_configured.push("embedder: not configured".into()),
             Some(task) => match task.await {
                 Ok(Ok(e)) => p.embedder = Some(e),
-                Ok(Err(e)) => p.failed.push(format!("embedder: {e}")),
+                Ok(Err(e)) => p.failed.push(format!("embedder: {e:#}")),
                 Err(e) => p.failed.push(format!("embedder: load panicked: {e}")),
             },
         }
@@ -166,9 +168,9 @@ impl Pipeline {
             match task.await {
                 Ok(Ok(reporter)) => p.reporters.push(RoundReporter::new(reporter, timeout)),
                 Ok(Err(e)) => {
-                    p.failed.push(format!("reporter {name}: {e}"));
+                    p.failed.push(format!("reporter {name}: {e:#}"));
                     p.unloaded_reporters
-                        .push((name, format!("not loaded at startup: {e}")));
+                        .push((name, format!("not loaded at startup: {e:#}")));
                 }
                 Err(e) => {
                     p.failed
@@ -183,8 +185,8 @@ impl Pipeline {
                 p.labeler_name = l.name().to_string();
                 p.labeler = Some(l);
             }
-            Ok(Err(e)) if !wanted => p.not_configured.push(format!("labeler: {e}")),
-            Ok(Err(e)) => p.failed.push(format!("labeler: {e}")),
+            Ok(Err(e)) if !wanted => p.not_configured.push(format!("labeler: {e:#}")),
+            Ok(Err(e)) => p.failed.push(format!("labeler: {e:#}")),
             Err(e) => p.failed.push(format!("labeler: load panicked: {e}")),
         }
         for f in &p.failed {
@@ -195,11 +197,11 @@ impl Pipeline {
 }
 
 /// A local labeler behind its own worker thread.
-fn pooled_labeler<L: vlmfuse_labeler::BlockingLabeler>(l: L) -> Result<Arc<dyn Labeler>, String> {
+fn pooled_labeler<L: vlmfuse_labeler::BlockingLabeler>(l: L) -> anyhow::Result<Arc<dyn Labeler>> {
     let name = vlmfuse_labeler::BlockingLabeler::name(&l).to_string();
-    BackendPool::new(name, Arc::new(l), PoolConfig::default())
-        .map(|p| Arc::new(p) as Arc<dyn Labeler>)
-        .map_err(|e| format!("labeler worker: {e}"))
+    let pool =
+        BackendPool::new(name, Arc::new(l), PoolConfig::default()).context("labeler worker")?;
+    Ok(Arc::new(pool))
 }
 
 fn entry_name(name: &Option<String>, model: &str) -> String {
