@@ -6,6 +6,7 @@ use serde_json::{json, Value};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use vlmfuse_labeler::{Label, Labeler, LabelerErrorKind, Ontology, OpenAiConfig, OpenAiLabeler};
+use vlmfuse_testkit::server::serve_local;
 
 #[derive(Clone, Default)]
 struct Fake {
@@ -47,10 +48,7 @@ async fn start(replies: Vec<(u16, &str)>) -> (Fake, String) {
     let app = Router::new()
         .route("/v1/chat/completions", post(chat))
         .with_state(fake.clone());
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
-    tokio::spawn(async move { axum::serve(listener, app).await.unwrap() });
-    (fake, format!("http://{addr}"))
+    (fake, serve_local(app).await)
 }
 
 fn labeler(base_url: String, ontology: Ontology) -> OpenAiLabeler {

@@ -46,19 +46,10 @@ pub enum ModelError {
         source: std::io::Error,
     },
 
-    /// A remote server answered with an error, or could not be reached, after all retries.
-    #[error("remote {endpoint}: {message} (status {}, after {attempts} attempt(s))",
-        .status.map(|s| s.to_string()).unwrap_or_else(|| "none".into()))]
-    Remote {
-        endpoint: String,
-        status: Option<u16>,
-        attempts: u32,
-        message: String,
-    },
-
-    /// A remote answered 2xx with a body we cannot interpret.
-    #[error("remote {endpoint} sent an unexpected response: {message}")]
-    BadResponse { endpoint: String, message: String },
+    /// A remote server failed: an error status, no answer, a timeout or an unusable body, after
+    /// the shared chat client's retries.
+    #[error(transparent)]
+    Chat(#[from] ChatError),
 
     /// Something took longer than it was allowed to.
     #[error("{what} timed out after {:.3}s", .after.as_secs_f64())]
@@ -72,37 +63,6 @@ pub enum ModelError {
 impl From<vlmfuse_core::FrameError> for ModelError {
     fn from(e: vlmfuse_core::FrameError) -> Self {
         ModelError::InvalidInput(e.to_string())
-    }
-}
-
-/// The shared chat client's failures, in this crate's terms (the wording is unchanged: the
-/// timeout names the endpoint and the attempt).
-impl From<ChatError> for ModelError {
-    fn from(e: ChatError) -> Self {
-        match e {
-            ChatError::Remote {
-                endpoint,
-                status,
-                attempts,
-                message,
-            } => ModelError::Remote {
-                endpoint,
-                status,
-                attempts,
-                message,
-            },
-            ChatError::Timeout {
-                endpoint,
-                attempt,
-                after,
-            } => ModelError::Timeout {
-                what: format!("POST {endpoint} (attempt {attempt})"),
-                after,
-            },
-            ChatError::BadResponse { endpoint, message } => {
-                ModelError::BadResponse { endpoint, message }
-            }
-        }
     }
 }
 
@@ -128,8 +88,9 @@ impl ModelError {
             ModelError::InvalidInput(_) => "invalid_input",
             ModelError::Candle(_) => "candle",
             ModelError::Io { .. } => "io",
-            ModelError::Remote { .. } => "remote",
-            ModelError::BadResponse { .. } => "bad_response",
+            ModelError::Chat(ChatError::Remote { .. }) => "remote",
+            ModelError::Chat(ChatError::Timeout { .. }) => "timeout",
+            ModelError::Chat(ChatError::BadResponse { .. }) => "bad_response",
             ModelError::Timeout { .. } => "timeout",
             ModelError::Backend(BackendError::QueueFull { .. }) => "busy",
             ModelError::Backend(BackendError::TimedOut { .. }) => "timeout",
@@ -159,12 +120,12 @@ mod tests {
 
     #[test]
     fn remote_message_has_status_and_attempts() {
-        let e = ModelError::Remote {
+        let e = ModelError::Chat(ChatError::Remote {
             endpoint: "http://x/v1/chat/completions".into(),
             status: Some(503),
             attempts: 3,
             message: "overloaded".into(),
-        };
+        });
         let s = e.to_string();
         assert!(s.contains("503") && s.contains("3 attempt"), "{s}");
         assert_eq!(e.kind(), "remote");

@@ -4,6 +4,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use futures::future::BoxFuture;
+use vlmfuse_core::chat::ChatError;
 use vlmfuse_models::{
     run_all, ClipInput, ClipMeta, ModelError, Reporter, ReporterFailure, ReporterOutput,
     RoundReporter,
@@ -40,12 +41,12 @@ impl Reporter for Fake {
                         model: self.0.into(),
                     })
                 }
-                Behaviour::Fail => Err(ModelError::Remote {
+                Behaviour::Fail => Err(ModelError::Chat(ChatError::Remote {
                     endpoint: "http://x".into(),
                     status: Some(502),
                     attempts: 1,
                     message: "bad gateway".into(),
-                }),
+                })),
                 Behaviour::Panic => panic!("reporter bug"),
             }
         })

@@ -5,7 +5,7 @@
 //! * [`fixtures`]: tiny random-weight models in the real on-disk formats (CLIP, Qwen3-VL, HF cache);
 //! * [`assets`]: fetching the small real models that PyPI packages ship (never committed);
 //! * [`labeler_eval`]: the labelers' data set, metrics and threshold tuning;
-//! * [`rounds`], [`clips`], [`multipart`], [`server`]: rounds files, test clips, upload bodies,
+//! * [`rounds`], [`clips`], [`multipart`], [`server`], [`resp`]: rounds files, test clips, upload bodies,
 //!   local and fake OpenAI-compatible servers;
 //! * [`bench`]: the engine benchmarks (`vlmfuse bench`, `vlmfuse-fusion`'s `bench` example).
 
@@ -15,6 +15,7 @@ pub mod clips;
 pub mod fixtures;
 pub mod labeler_eval;
 pub mod multipart;
+pub mod resp;
 pub mod rng;
 pub mod rounds;
 pub mod server;

@@ -187,12 +187,9 @@ pub struct ClipOut {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub file_name: Option<String>,
     pub bytes: u64,
-    pub container: String,
-    pub codec: String,
-    pub duration_s: f64,
-    pub width: u32,
-    pub height: u32,
-    pub fps: f64,
+    /// What the header says: container, codec, duration, size, fps, keyframe spacing.
+    #[serde(flatten)]
+    pub info: vlmfuse_media::ClipInfo,
     /// Presentation times of the sampled frames, seconds.
     pub timestamps_s: Vec<f64>,
 }

@@ -119,12 +119,7 @@ impl Service {
         let clip = ClipOut {
             file_name: up.file_name.clone(),
             bytes: up.bytes,
-            container: info.container.clone(),
-            codec: info.codec.clone(),
-            duration_s: info.duration_s,
-            width: info.width,
-            height: info.height,
-            fps: info.fps,
+            info: info.clone(),
             timestamps_s: decoded.timestamps(),
         };
         let frames: Arc<[vlmfuse_models::Frame]> =

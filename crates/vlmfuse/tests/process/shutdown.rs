@@ -28,7 +28,7 @@ fn sigterm_lets_the_request_in_flight_finish() {
 
     let url = srv.url("/v1/infer");
     let inflight = std::thread::spawn(move || {
-        Resp::from(
+        read(
             client()
                 .post(url)
                 .header("content-type", content_type())

@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::Duration;
+pub use vlmfuse_testkit::resp::Resp;
 
 pub const BIN: &str = env!("CARGO_BIN_EXE_vlmfuse");
 
@@ -72,7 +73,7 @@ impl Server {
     }
 
     pub fn get(&self, path: &str) -> Resp {
-        Resp::from(client().get(self.url(path)).send())
+        read(client().get(self.url(path)).send())
     }
 
     pub fn post(&self, path: &str, body: &Value) -> Resp {
@@ -128,52 +129,25 @@ pub fn try_post(addr: &str, path: &str, v: &Value) -> reqwest::Result<Resp> {
         .post(format!("http://{addr}{path}"))
         .json(v)
         .send()
-        .map(Resp::read)
+        .map(read_response)
 }
 
-#[derive(Debug, Clone)]
-pub struct Resp {
-    pub status: u16,
-    pub headers: Vec<(String, String)>,
-    pub body: Vec<u8>,
+/// Reads a blocking response (an error means the server could not be reached).
+pub fn read(r: reqwest::Result<reqwest::blocking::Response>) -> Resp {
+    read_response(r.expect("request"))
 }
 
-impl From<reqwest::Result<reqwest::blocking::Response>> for Resp {
-    fn from(r: reqwest::Result<reqwest::blocking::Response>) -> Self {
-        Resp::read(r.expect("request"))
-    }
-}
-
-impl Resp {
-    pub fn read(r: reqwest::blocking::Response) -> Resp {
-        let status = r.status().as_u16();
-        let headers = r
-            .headers()
-            .iter()
-            .map(|(k, v)| (k.to_string(), v.to_str().unwrap_or("").to_string()))
-            .collect();
-        let body = r.bytes().map(|b| b.to_vec()).unwrap_or_default();
-        Resp {
-            status,
-            headers,
-            body,
-        }
-    }
-
-    pub fn json(&self) -> Value {
-        serde_json::from_slice(&self.body).unwrap_or_else(|e| {
-            panic!(
-                "status {}: body is not JSON ({e}): {}",
-                self.status,
-                String::from_utf8_lossy(&self.body)
-            )
-        })
-    }
-
-    pub fn header(&self, name: &str) -> Option<&str> {
-        self.headers
-            .iter()
-            .find(|(k, _)| k.eq_ignore_ascii_case(name))
-            .map(|(_, v)| v.as_str())
+fn read_response(r: reqwest::blocking::Response) -> Resp {
+    let status = r.status().as_u16();
+    let headers = r
+        .headers()
+        .iter()
+        .map(|(k, v)| (k.to_string(), v.to_str().unwrap_or("").to_string()))
+        .collect();
+    let body = r.bytes().map(|b| b.to_vec()).unwrap_or_default();
+    Resp {
+        status,
+        headers,
+        body,
     }
 }

@@ -11,6 +11,7 @@ use std::path::{Path, PathBuf};
 use tower::ServiceExt;
 use vlmfuse::{app, AppState, Config};
 use vlmfuse_testkit::multipart::{content_type, multipart};
+pub use vlmfuse_testkit::resp::Resp;
 
 pub struct TestApp {
     pub state: AppState,
@@ -102,42 +103,5 @@ impl TestApp {
         let name = path.file_name().unwrap().to_str().unwrap();
         self.post_multipart(multipart(&[("video", name, &data)]))
             .await
-    }
-}
-
-#[derive(Debug, Clone)]
-pub struct Resp {
-    pub status: u16,
-    pub headers: Vec<(String, String)>,
-    pub body: Vec<u8>,
-}
-
-impl Resp {
-    pub fn json(&self) -> Value {
-        serde_json::from_slice(&self.body).unwrap_or_else(|e| {
-            panic!(
-                "status {}: body is not JSON ({e}): {}",
-                self.status,
-                String::from_utf8_lossy(&self.body)
-            )
-        })
-    }
-
-    pub fn header(&self, name: &str) -> Option<&str> {
-        self.headers
-            .iter()
-            .find(|(k, _)| k.eq_ignore_ascii_case(name))
-            .map(|(_, v)| v.as_str())
-    }
-
-    /// Asserts an error response: the status and the `{"error", "kind"}` shape.
-    pub fn expect_error(&self, status: u16, kind: &str) {
-        let v = self.json();
-        assert_eq!(self.status, status, "body: {v}");
-        assert_eq!(v["kind"], kind, "body: {v}");
-        assert!(
-            v["error"].as_str().is_some_and(|s| !s.is_empty()),
-            "body: {v}"
-        );
     }
 }
