@@ -3,8 +3,10 @@
 //! paths as production checkpoints.
 
 pub mod qwen3_vl;
+pub mod video_llava;
 
 pub use qwen3_vl::TinyQwen3Vl;
+pub use video_llava::TinyVideoLlava;
 
 use std::collections::HashMap;
 use std::path::Path;
