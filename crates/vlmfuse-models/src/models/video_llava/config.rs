@@ -525,7 +525,8 @@ mod tests {
 
     #[test]
     fn rope_forms_and_refusals() {
-        let base = |text: serde_json::Value| {
+        let base = |mut text: serde_json::Value| {
+            text["vocab_size"] = 32064.into();
             serde_json::json!({"model_type": "video_llava", "text_config": text,
                 "vision_config": {"num_hidden_layers": 2}})
         };
@@ -565,12 +566,14 @@ mod tests {
     #[test]
     fn bad_fields_are_named() {
         let v = serde_json::json!({"model_type": "video_llava",
+            "text_config": {"vocab_size": 32064},
             "vision_config": {"hidden_act": "swiglu_nope"}});
         assert!(VideoLlavaConfig::from_json(&v)
             .unwrap_err()
             .to_string()
             .contains("swiglu_nope"));
         let v = serde_json::json!({"model_type": "video_llava",
+            "text_config": {"vocab_size": 32064},
             "vision_feature_select_strategy": "cls"});
         assert!(VideoLlavaConfig::from_json(&v)
             .unwrap_err()
