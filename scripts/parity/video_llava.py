@@ -199,9 +199,9 @@ def reference(root):
     print(f"wrote {OUT}: {len(pre['clips'])} clips, {len(cases)} cases")
 
 
-def bench(root, new_tokens, repeats):
+def bench(root, new_tokens, repeats, threads):
     """Same inputs as examples/video_llava_bench.rs: the landscape clip, 'describe' prompt."""
-    torch.set_num_threads(max(1, os.cpu_count() or 1))
+    torch.set_num_threads(threads or max(1, os.cpu_count() or 1))
     mdir = os.path.join(root, "model")
     proc = AutoProcessor.from_pretrained(mdir)
     model = VideoLlavaForConditionalGeneration.from_pretrained(mdir, dtype=torch.float32).eval()
@@ -224,7 +224,7 @@ def bench(root, new_tokens, repeats):
     ttft = min(run(1)[0] for _ in range(repeats))
     full, prompt = min(run(new_tokens) for _ in range(repeats))
     tps = (new_tokens - 1) / max(full - ttft, 1e-9)
-    print(json.dumps({"impl": "transformers", "ttft_s": ttft, "decode_tok_s": tps,
+    print(json.dumps({"impl": "transformers", "version": transformers.__version__, "ttft_s": ttft, "decode_tok_s": tps,
                       "prompt_tokens": prompt, "new_tokens": new_tokens,
                       "threads": torch.get_num_threads()}))
 
@@ -235,12 +235,13 @@ def main():
     ap.add_argument("--bench", action="store_true", help="time transformers instead")
     ap.add_argument("--new-tokens", type=int, default=32)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=0, help="torch threads (default: all cores)")
     a = ap.parse_args()
     if transformers.__version__ != "5.23.0":
         print(f"warning: reference is transformers 5.23.0, this is {transformers.__version__}",
               file=sys.stderr)
     if a.bench:
-        bench(a.dir, a.new_tokens, a.repeats)
+        bench(a.dir, a.new_tokens, a.repeats, a.threads)
     else:
         reference(a.dir)
 

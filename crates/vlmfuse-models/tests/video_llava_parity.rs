@@ -304,7 +304,9 @@ fn lora_merge_touches_every_named_module_and_changes_the_output() {
     let frames = clip("landscape").render();
     let text = proc.video_prompt(prompt("describe"));
     let fr = refs(&frames);
-    let inputs = proc.prepare_videos(&[(text.as_str(), fr.as_slice())]).unwrap();
+    let inputs = proc
+        .prepare_videos(&[(text.as_str(), fr.as_slice())])
+        .unwrap();
     let run = |m: &VideoLlava| -> Vec<f32> {
         let mut c = m.new_cache(256);
         m.prefill(&inputs, &mut c)
@@ -326,7 +328,9 @@ fn one_pass_prefill_equals_token_by_token_decoding() {
     let frames = clip("portrait12").render();
     let text = proc.video_prompt(prompt("manoeuvre"));
     let fr = refs(&frames);
-    let inputs = proc.prepare_videos(&[(text.as_str(), fr.as_slice())]).unwrap();
+    let inputs = proc
+        .prepare_videos(&[(text.as_str(), fr.as_slice())])
+        .unwrap();
     let mut cache = model.new_cache(256);
     let one = model.prefill(&inputs, &mut cache).unwrap();
     let steps = model.logits_token_by_token(&inputs, &mut cache).unwrap();
@@ -354,7 +358,10 @@ fn batch_rows_equal_their_single_runs_even_with_different_frame_counts() {
     let batch = proc
         .prepare_videos(&[(ta.as_str(), fa.as_slice()), (tb.as_str(), fb.as_slice())])
         .unwrap();
-    assert!(batch.ids.attention_mask[1].iter().any(|&v| !v), "row 1 is padded");
+    assert!(
+        batch.ids.attention_mask[1].iter().any(|&v| !v),
+        "row 1 is padded"
+    );
     let mut cache = model.new_cache(512);
     let ids = model.generate_greedy(&batch, 8, &[], &mut cache).unwrap();
     let bl: Vec<f32> = model
@@ -394,7 +401,9 @@ fn transformers5_key_names_load_the_same_model() {
     let frames = clip("upscale").render();
     let text = proc.video_prompt(prompt("describe"));
     let fr = refs(&frames);
-    let inputs = proc.prepare_videos(&[(text.as_str(), fr.as_slice())]).unwrap();
+    let inputs = proc
+        .prepare_videos(&[(text.as_str(), fr.as_slice())])
+        .unwrap();
     let run = |m: &VideoLlava| -> Vec<f32> {
         let mut c = m.new_cache(256);
         m.prefill(&inputs, &mut c)
@@ -414,7 +423,9 @@ fn one_model_serves_requests_one_after_another() {
     let frames = clip("landscape").render();
     let text = proc.video_prompt(prompt("describe"));
     let fr = refs(&frames);
-    let inputs = proc.prepare_videos(&[(text.as_str(), fr.as_slice())]).unwrap();
+    let inputs = proc
+        .prepare_videos(&[(text.as_str(), fr.as_slice())])
+        .unwrap();
     let other = proc.prepare_text(&["USER: hi ASSISTANT:"]).unwrap();
     let mut cache = model.new_cache(64);
     let first = model.generate_greedy(&inputs, 6, &[], &mut cache).unwrap();
@@ -423,7 +434,9 @@ fn one_model_serves_requests_one_after_another() {
     assert_eq!(first, again, "a previous request leaked into the next");
     // Stopping at EOS keeps the stop token and ends the row.
     let stop = [first[0][2]];
-    let cut = model.generate_greedy(&inputs, 6, &stop, &mut cache).unwrap();
+    let cut = model
+        .generate_greedy(&inputs, 6, &stop, &mut cache)
+        .unwrap();
     assert_eq!(cut[0], first[0][..3].to_vec());
 }
 
@@ -434,7 +447,9 @@ fn half_precision_runs_and_agrees_on_the_first_token() {
     let frames = clip("landscape").render();
     let text = proc.video_prompt(prompt("describe"));
     let fr = refs(&frames);
-    let inputs = proc.prepare_videos(&[(text.as_str(), fr.as_slice())]).unwrap();
+    let inputs = proc
+        .prepare_videos(&[(text.as_str(), fr.as_slice())])
+        .unwrap();
     let mut c = m32.new_cache(256);
     let l32: Vec<f32> = m32
         .prefill(&inputs, &mut c)
@@ -495,7 +510,9 @@ fn bad_inputs_are_errors_not_panics() {
         height: 10,
         rgb: &[0u8; 10],
     };
-    let e = proc.prepare_videos(&[(text.as_str(), &[torn])]).unwrap_err();
+    let e = proc
+        .prepare_videos(&[(text.as_str(), &[torn])])
+        .unwrap_err();
     assert!(e.to_string().contains("RGB bytes"), "{e}");
     // Frames of different sizes are fine as long as the crop makes them one size (it always
     // does with a crop size, as in the reference).

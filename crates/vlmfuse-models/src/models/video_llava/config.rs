@@ -132,7 +132,9 @@ impl VisionConfig {
 pub enum RopeScaling {
     None,
     /// Positions divided by `factor` (`rope_type = "linear"`).
-    Linear { factor: f64 },
+    Linear {
+        factor: f64,
+    },
     /// Llama 3.1's frequency-dependent scaling.
     Llama3 {
         factor: f64,
@@ -232,9 +234,9 @@ fn rope_from(raw: &RawText) -> Result<(f64, RopeScaling), ModelError> {
         .and_then(|t| t.as_str())
         .unwrap_or("default");
     let num = |k: &str| -> Result<f64, ModelError> {
-        p.get(k).and_then(|v| v.as_f64()).ok_or_else(|| {
-            ModelError::BadConfig(format!("text_config: rope `{kind}` needs `{k}`"))
-        })
+        p.get(k)
+            .and_then(|v| v.as_f64())
+            .ok_or_else(|| ModelError::BadConfig(format!("text_config: rope `{kind}` needs `{k}`")))
     };
     let scaling = match kind {
         "default" => RopeScaling::None,
@@ -419,14 +421,18 @@ impl VideoLlavaConfig {
             .unwrap_or(true);
         let feature_layers = match field(v, "vision_feature_layer") {
             None => FeatureLayers::One(-2),
-            Some(serde_json::Value::Number(n)) => FeatureLayers::One(n.as_i64().ok_or_else(
-                || ModelError::BadConfig("vision_feature_layer is not an integer".into()),
-            )?),
+            Some(serde_json::Value::Number(n)) => {
+                FeatureLayers::One(n.as_i64().ok_or_else(|| {
+                    ModelError::BadConfig("vision_feature_layer is not an integer".into())
+                })?)
+            }
             Some(serde_json::Value::Array(a)) if !a.is_empty() => FeatureLayers::Many(
                 a.iter()
                     .map(|x| {
                         x.as_i64().ok_or_else(|| {
-                            ModelError::BadConfig("vision_feature_layer list holds a non-integer".into())
+                            ModelError::BadConfig(
+                                "vision_feature_layer list holds a non-integer".into(),
+                            )
                         })
                     })
                     .collect::<Result<_, _>>()?,
@@ -531,7 +537,8 @@ mod tests {
                 "vision_config": {"num_hidden_layers": 2}})
         };
         let c = VideoLlavaConfig::from_json(&base(serde_json::json!({
-            "rope_parameters": {"rope_type": "default", "rope_theta": 500000.0}}))).unwrap();
+            "rope_parameters": {"rope_type": "default", "rope_theta": 500000.0}})))
+        .unwrap();
         assert_eq!(c.text.rope_theta, 500000.0);
         let c = VideoLlavaConfig::from_json(&base(serde_json::json!({
             "rope_theta": 1000.0, "rope_scaling": {"type": "linear", "factor": 2.0}})))

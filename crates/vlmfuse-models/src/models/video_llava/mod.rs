@@ -104,10 +104,7 @@ pub struct ModelInputs {
 impl VideoLlavaProcessor {
     /// One prompt per clip (each holding one `<video>`, e.g. from
     /// [`video_prompt`](Self::video_prompt)), preprocessed, expanded, tokenized and left-padded.
-    pub fn prepare_videos(
-        &self,
-        items: &[(&str, &[FrameRef])],
-    ) -> Result<ModelInputs, ModelError> {
+    pub fn prepare_videos(&self, items: &[(&str, &[FrameRef])]) -> Result<ModelInputs, ModelError> {
         if items.is_empty() {
             return Err(ModelError::InvalidInput("an empty batch".into()));
         }
@@ -269,8 +266,7 @@ impl VideoLlava {
                 ),
             });
         };
-        let text =
-            LlamaText::load(vb.pp("language_model.model"), head, &cfg.text).map_err(&err)?;
+        let text = LlamaText::load(vb.pp("language_model.model"), head, &cfg.text).map_err(&err)?;
         Ok(Self {
             cfg,
             video_tower,
@@ -377,7 +373,10 @@ impl VideoLlava {
             )));
         }
         let ids = Tensor::from_vec(flat.clone(), (b, t), &self.device)?;
-        let emb = self.text.embed(&ids)?.reshape((b * t, self.cfg.text.hidden_size))?;
+        let emb = self
+            .text
+            .embed(&ids)?
+            .reshape((b * t, self.cfg.text.hidden_size))?;
         let (vid, img) = (self.cfg.video_token_id, self.cfg.image_token_id);
         let nv = flat.iter().filter(|&&i| i == vid).count();
         let ni = flat.iter().filter(|&&i| i == img).count();

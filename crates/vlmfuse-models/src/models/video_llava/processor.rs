@@ -528,9 +528,7 @@ impl TokenizerSettings {
 /// BOS/EOS template when `add_bos_token`/`add_eos_token` are set. A file written by an older
 /// transformers (a `Prepend`+`Replace` normalizer) therefore tokenizes differently there than
 /// when read verbatim, and it is the rebuilt behaviour that the model sees in the reference.
-fn load_tokenizer(
-    source: &WeightSource,
-) -> Result<(Tokenizer, TokenizerSettings), ModelError> {
+fn load_tokenizer(source: &WeightSource) -> Result<(Tokenizer, TokenizerSettings), ModelError> {
     let path = source.resolve("tokenizer.json")?;
     let text = std::fs::read_to_string(&path).map_err(|e| ModelError::Io {
         path: path.clone(),
@@ -544,8 +542,7 @@ fn load_tokenizer(
         path: path.clone(),
         reason: e,
     };
-    let mut j: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
+    let mut j: serde_json::Value = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
     let is_llama = matches!(
         settings.class.as_deref(),
         Some("LlamaTokenizer") | Some("LlamaTokenizerFast")
@@ -584,7 +581,8 @@ fn load_tokenizer(
             serde_json::json!({"type": "Fuse"}),
         ];
         if add_prefix_space {
-            decoders.push(serde_json::json!({"type": "Strip", "content": " ", "start": 1, "stop": 0}));
+            decoders
+                .push(serde_json::json!({"type": "Strip", "content": " ", "start": 1, "stop": 0}));
         }
         j["decoder"] = serde_json::json!({"type": "Sequence", "decoders": decoders});
     }
@@ -720,7 +718,11 @@ impl VideoLlavaProcessor {
             Some(v) => ImageOps::from_json(v, Arith::Pil)?,
             None => ImageOps::clip_default(Arith::Pil),
         };
-        let pget = |k: &str| proc.as_ref().and_then(|p| p.get(k)).filter(|x| !x.is_null());
+        let pget = |k: &str| {
+            proc.as_ref()
+                .and_then(|p| p.get(k))
+                .filter(|x| !x.is_null())
+        };
         let patch_size = pget("patch_size")
             .and_then(|x| x.as_u64())
             .map(|x| x as usize)
@@ -757,9 +759,9 @@ impl VideoLlavaProcessor {
             .unwrap_or("<video>")
             .to_string();
         let id_of = |t: &str| {
-            tokenizer.token_to_id(t).ok_or_else(|| {
-                ModelError::BadConfig(format!("tokenizer has no `{t}` token"))
-            })
+            tokenizer
+                .token_to_id(t)
+                .ok_or_else(|| ModelError::BadConfig(format!("tokenizer has no `{t}` token")))
         };
         let image_token_id = id_of(&image_token)?;
         let video_token_id = id_of(&video_token)?;
@@ -1074,7 +1076,10 @@ mod tests {
             VideoLlavaProcessor::sample_indices(12, 8),
             vec![0, 1, 3, 4, 6, 7, 9, 10]
         );
-        assert_eq!(VideoLlavaProcessor::sample_indices(5, 8), vec![0, 1, 2, 3, 4]);
+        assert_eq!(
+            VideoLlavaProcessor::sample_indices(5, 8),
+            vec![0, 1, 2, 3, 4]
+        );
         assert_eq!(
             VideoLlavaProcessor::sample_indices(100, 8),
             vec![0, 12, 25, 37, 50, 62, 75, 87]

@@ -92,7 +92,8 @@ impl Rotary {
                     } else if wl > low_wl {
                         freq / factor
                     } else {
-                        let s = (omax / wl - low_freq_factor) / (high_freq_factor - low_freq_factor);
+                        let s =
+                            (omax / wl - low_freq_factor) / (high_freq_factor - low_freq_factor);
                         (1.0 - s) * freq / factor + s * freq
                     };
                     *f = out as f32;
@@ -261,9 +262,10 @@ pub struct LlamaText {
     device: Device,
 }
 
-/// Large and finite, so a fully masked row (a left-pad query) softmaxes to uniform weights
-/// instead of NaN; real rows never see it.
-const MASKED: f32 = f32::MIN;
+/// `-inf` rather than a large finite value: `exp` of a finite huge negative takes libm's slow
+/// underflow path (≈10% of a CPU prefill), `exp(-inf)` does not. A left-pad query, whose row
+/// would be all `-inf` (NaN after softmax), attends to itself instead; its output is never read.
+const MASKED: f32 = f32::NEG_INFINITY;
 
 impl LlamaText {
     /// `vb` points at the `LlamaModel` (`language_model.model` in the hub layout), `head` at
@@ -339,10 +341,7 @@ impl LlamaText {
             candle_core::bail!("validity mask does not match the input shape [{b}, {t}]");
         }
         if !cache.is_empty() && cache.batch() != b {
-            candle_core::bail!(
-                "batch of {b} fed to a cache holding {} rows",
-                cache.batch()
-            );
+            candle_core::bail!("batch of {b} fed to a cache holding {} rows", cache.batch());
         }
         if cache.is_empty() {
             cache.valid = vec![Vec::new(); b];
@@ -369,7 +368,10 @@ impl LlamaText {
             for r in 0..b {
                 for i in 0..t {
                     for j in 0..tk {
-                        if j > past + i || !cache.valid[r][j] {
+                        let own = j == past + i;
+                        let pad_query = !cache.valid[r][past + i];
+                        let visible = cache.valid[r][j] || (own && pad_query);
+                        if j > past + i || !visible {
                             m[(r * t + i) * tk + j] = MASKED;
                         }
                     }
