@@ -6,6 +6,7 @@ pub mod device;
 pub mod embed;
 mod error;
 pub mod lora;
+pub mod models;
 pub mod reporter;
 pub mod weights;
 
