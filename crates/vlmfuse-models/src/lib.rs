@@ -8,6 +8,7 @@ mod error;
 pub mod fixtures;
 mod frames;
 pub mod lora;
+pub mod models;
 pub mod reporter;
 pub mod weights;
 
