@@ -11,7 +11,7 @@ written by the `write_fixture` example.
 
 Builds `qwen3_vl_bench` and `write_fixture` in release under $CARGO_TARGET_DIR (default
 /work/target-release) unless --bin-dir points at existing binaries. Both engines use all cores
-(torch's default intra-op threads, candle's rayon pool).
+(torch's default intra-op threads, candle's rayon pool) unless --threads says otherwise.
 """
 
 import argparse
@@ -128,7 +128,13 @@ def main():
     ap.add_argument("--new", type=int, default=32, help="tokens to generate per run")
     ap.add_argument("--bin-dir", help="directory with release qwen3_vl_bench and write_fixture")
     ap.add_argument("--json", help="also write the results here")
+    ap.add_argument("--threads", type=int,
+                    help="threads for both engines (torch.set_num_threads, RAYON_NUM_THREADS); "
+                         "default: all cores. 1 is the least sensitive to a busy machine")
     a = ap.parse_args()
+    if a.threads:
+        torch.set_num_threads(a.threads)
+        os.environ["RAYON_NUM_THREADS"] = str(a.threads)
     bin_dir = a.bin_dir or build(os.environ.get("CARGO_TARGET_DIR", "/work/target-release"))
     results = []
     with tempfile.TemporaryDirectory() as tmp:

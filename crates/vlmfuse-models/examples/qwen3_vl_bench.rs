@@ -16,7 +16,9 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use candle_core::{DType, Device};
-use vlmfuse_models::models::qwen3_vl::{argmax_rows, Cache, LoadOptions, Qwen3Vl, Qwen3VlProcessor};
+use vlmfuse_models::models::qwen3_vl::{
+    argmax_rows, Cache, LoadOptions, Qwen3Vl, Qwen3VlProcessor,
+};
 use vlmfuse_models::{FrameRef, WeightSource};
 
 struct Args {
@@ -178,7 +180,11 @@ fn run(a: &Args) -> Result<(), vlmfuse_models::ModelError> {
     let (pre, prefill) = (median(pre), median(prefill));
     let j = serde_json::json!({
         "engine": "vlmfuse",
-        "threads": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
+        // candle's CPU pool is rayon's global one: RAYON_NUM_THREADS or one per core.
+        "threads": std::env::var("RAYON_NUM_THREADS")
+            .ok()
+            .and_then(|s| s.parse::<usize>().ok())
+            .unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)),
         "load_ms": load_ms,
         "prompt_tokens": prompt_tokens,
         "preprocess_ms": pre,

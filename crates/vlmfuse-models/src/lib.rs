@@ -9,6 +9,7 @@ pub mod fixtures;
 mod frames;
 pub mod lora;
 pub mod models;
+pub mod ops;
 pub mod reporter;
 pub mod weights;
 

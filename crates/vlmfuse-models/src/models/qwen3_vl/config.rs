@@ -324,12 +324,10 @@ impl Config {
                 t.num_attention_heads, t.num_key_value_heads
             )));
         }
-        if t.head_dim % 2 != 0 || t.mrope_section.iter().sum::<usize>() != t.head_dim / 2 {
-            return Err(bad(format!(
-                "mrope_section {:?} must add up to head_dim / 2 = {}",
-                t.mrope_section,
-                t.head_dim / 2
-            )));
+        // Sections need not add up to head_dim / 2: the reference lets height and width take
+        // their interleaved slots up to 3 x section and leaves every other frequency temporal.
+        if t.head_dim % 2 != 0 {
+            return Err(bad(format!("head_dim {} must be even", t.head_dim)));
         }
         if v.hidden_size % v.num_heads != 0 || v.head_dim() % 4 != 0 {
             return Err(bad(format!(
@@ -408,9 +406,13 @@ mod tests {
     #[test]
     fn rejects_what_it_cannot_run_with_the_key_named() {
         let mut v = minimal();
-        v["text_config"]["rope_parameters"]["mrope_section"] = serde_json::json!([3, 1, 1]);
+        v["text_config"]["rope_parameters"]["mrope_section"] = serde_json::json!([3, 1]);
         let e = Config::from_json(&v).unwrap_err().to_string();
         assert!(e.contains("mrope_section"), "{e}");
+        let mut v = minimal();
+        v["text_config"]["head_dim"] = serde_json::json!(7);
+        let e = Config::from_json(&v).unwrap_err().to_string();
+        assert!(e.contains("even"), "{e}");
 
         let mut v = minimal();
         v["vision_config"]["num_position_embeddings"] = serde_json::json!(15);

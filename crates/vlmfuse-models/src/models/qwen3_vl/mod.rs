@@ -73,7 +73,7 @@ pub(crate) fn attention(
         Some(m) => att.broadcast_add(m)?,
         None => att,
     };
-    let att = candle_nn::ops::softmax_last_dim(&att)?.to_dtype(dt)?;
+    let att = crate::ops::softmax_last_dim(&att)?.to_dtype(dt)?;
     att.matmul(&v.contiguous()?)
 }
 
@@ -99,7 +99,7 @@ pub(crate) fn attention_grouped(
             .reshape((b, nkv, rl, s))?,
         None => att,
     };
-    let att = candle_nn::ops::softmax_last_dim(&att)?.to_dtype(dt)?;
+    let att = crate::ops::softmax_last_dim(&att)?.to_dtype(dt)?;
     att.matmul(v)
 }
 

@@ -126,9 +126,28 @@ impl Layer {
             .forward(&self.input_layernorm.forward(xs)?, rope, mask, cache)?;
         let xs = (xs + a)?;
         let h = self.post_attention_layernorm.forward(&xs)?;
-        let m = (self.gate_proj.forward(&h)?.apply(&self.act)? * self.up_proj.forward(&h)?)?;
+        let m = (crate::ops::activation(self.act, &self.gate_proj.forward(&h)?)?
+            * self.up_proj.forward(&h)?)?;
         xs + self.down_proj.forward(&m)?
     }
+}
+
+/// Which position row (0 = temporal, 1 = height, 2 = width) drives each of the `half`
+/// rotary frequencies: interleaved T H W T H W ..., height and width only up to 3 x their
+/// section, every other frequency temporal (`Qwen3VLTextRotaryEmbedding.recomposition_frequencies`).
+pub fn frequency_axes(section: [usize; 3], half: usize) -> Vec<usize> {
+    let [_, sh, sw] = section;
+    (0..half)
+        .map(|j| {
+            if j % 3 == 1 && j < 3 * sh {
+                1
+            } else if j % 3 == 2 && j < 3 * sw {
+                2
+            } else {
+                0
+            }
+        })
+        .collect()
 }
 
 /// DeepStack features for one forward call: flat row indices (`batch * seq + pos`) of the
@@ -197,22 +216,9 @@ impl TextModel {
         self.embed_tokens.forward(ids)
     }
 
-    /// Which position row (0 = temporal, 1 = height, 2 = width) drives each of the
-    /// `head_dim / 2` frequencies: interleaved T H W T H W ..., height and width limited to
-    /// their sections, the rest temporal (`Qwen3VLTextRotaryEmbedding.apply_interleaved_mrope`).
+    /// See [`frequency_axes`].
     pub fn frequency_axes(&self) -> Vec<usize> {
-        let [_, sh, sw] = self.mrope_section;
-        (0..self.inv_freq.len())
-            .map(|j| {
-                if j % 3 == 1 && j < 3 * sh {
-                    1
-                } else if j % 3 == 2 && j < 3 * sw {
-                    2
-                } else {
-                    0
-                }
-            })
-            .collect()
+        frequency_axes(self.mrope_section, self.inv_freq.len())
     }
 
     /// cos/sin `[batch, seq, head_dim / 2]` for positions `pos[axis][b * seq + i]`.
@@ -273,5 +279,21 @@ impl TextModel {
     /// Next-token logits (`[batch, vocab]`, f32) from [`forward`](Self::forward)'s output.
     pub fn logits(&self, hidden: &Tensor) -> candle_core::Result<Tensor> {
         self.lm_head.forward(hidden)?.to_dtype(DType::F32)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn released_checkpoints_interleave_t_h_w_and_end_temporal() {
+        // [24, 20, 20] over 64 frequencies: T H W repeated 20 times, then the last four T.
+        let a = frequency_axes([24, 20, 20], 64);
+        for (j, &x) in a.iter().enumerate().take(60) {
+            assert_eq!(x, j % 3, "frequency {j}");
+        }
+        assert_eq!(&a[60..], &[0, 0, 0, 0]);
+        assert_eq!(frequency_axes([2, 1, 1], 4), vec![0, 1, 2, 0]);
     }
 }

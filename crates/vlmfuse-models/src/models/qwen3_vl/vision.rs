@@ -104,12 +104,10 @@ impl Block {
         }
         let attn = Tensor::cat(&outs, 0)?;
         let xs = (xs + self.proj.forward(&attn)?)?;
-        let mlp = self.fc2.forward(
-            &self
-                .fc1
-                .forward(&self.norm2.forward(&xs)?)?
-                .apply(&self.act)?,
-        )?;
+        let mlp = self.fc2.forward(&crate::ops::activation(
+            self.act,
+            &self.fc1.forward(&self.norm2.forward(&xs)?)?,
+        )?)?;
         xs + mlp
     }
 }
