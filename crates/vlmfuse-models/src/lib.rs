@@ -7,6 +7,7 @@ pub mod embed;
 mod error;
 pub mod lora;
 pub mod models;
+pub mod ops;
 pub mod reporter;
 pub mod weights;
 

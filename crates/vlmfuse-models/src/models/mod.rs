@@ -1,5 +1,8 @@
-//! Model architectures owned by this crate, in candle-transformers' file layout
-//! (`config` / `vision` / `text` per model), where candle-transformers is wrong or lacks what the
-//! service needs (input embeddings, batched masks, a reusable KV cache).
+//! In-process model architectures owned by this crate, where candle-transformers is missing one
+//! or computes something other than the reference implementation (input embeddings, batched
+//! masks, a reusable KV cache). Each follows candle-transformers' layout (`config`, `vision`,
+//! `text`, ...) on candle-nn layers and has parity tests against transformers' outputs
+//! (`tests/*_parity.rs`).
 
+pub mod qwen3_vl;
 pub mod video_llava;
