@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 /// Environment variable that overrides the asset cache root (same as the fetch script).
-pub const ASSETS_ENV: &str = "VLMFUSE_ASSETS";
+pub const ASSETS_ENV: &str = vlmfuse_ort::ASSETS_ENV;
 
 /// Paths of the fetched assets.
 #[derive(Debug, Clone)]
@@ -18,6 +18,11 @@ pub struct AssetPaths {
     pub minilm_dir: PathBuf,
     /// The assembled gemma-3-270m Q4_K_M GGUF.
     pub gemma_gguf: PathBuf,
+    /// all-MiniLM-L6-v2 for ONNX Runtime: `model.onnx` (the committed graph) beside hard links
+    /// of the files in `minilm_dir`, whose `model.safetensors` it reads.
+    pub minilm_onnx_dir: PathBuf,
+    /// `libonnxruntime.so.1.31.1` from the `onnxruntime` wheel.
+    pub onnxruntime: PathBuf,
 }
 
 /// Why assets are not available.
@@ -40,11 +45,7 @@ impl std::fmt::Display for AssetsUnavailable {
 
 /// The cache root: `$VLMFUSE_ASSETS`, else `$HOME/.cache/vlmfuse-assets`.
 pub fn assets_root() -> PathBuf {
-    if let Some(p) = std::env::var_os(ASSETS_ENV).filter(|p| !p.is_empty()) {
-        return PathBuf::from(p);
-    }
-    let home = std::env::var_os("HOME").unwrap_or_else(|| ".".into());
-    Path::new(&home).join(".cache").join("vlmfuse-assets")
+    vlmfuse_ort::assets_root()
 }
 
 /// Paths where the fetch script puts things, whether or not they exist yet.
@@ -53,6 +54,8 @@ pub fn asset_paths() -> AssetPaths {
     AssetPaths {
         minilm_dir: root.join("minilm"),
         gemma_gguf: root.join("gemma-3-270m-q4_k_m.gguf"),
+        minilm_onnx_dir: root.join("minilm-onnx"),
+        onnxruntime: root.join("onnxruntime").join(vlmfuse_ort::LIBRARY_FILE),
         root,
     }
 }
@@ -62,6 +65,10 @@ fn present(p: &AssetPaths) -> bool {
         .iter()
         .all(|f| p.minilm_dir.join(f).is_file())
         && p.gemma_gguf.is_file()
+        && ["model.onnx", "model.safetensors", "tokenizer.json"]
+            .iter()
+            .all(|f| p.minilm_onnx_dir.join(f).is_file())
+        && p.onnxruntime.is_file()
 }
 
 /// The fetch script in this source tree.

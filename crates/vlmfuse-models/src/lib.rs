@@ -12,7 +12,7 @@ pub mod reporter;
 pub mod weights;
 
 pub use device::parse_device;
-pub use embed::{ClipEmbedder, ContextEmbedder};
+pub use embed::{ClipEmbedder, ContextEmbedder, OnnxClipConfig, OnnxClipEmbedder};
 pub use error::ModelError;
 pub use frames::{Frame, FrameRef};
 pub use reporter::{
