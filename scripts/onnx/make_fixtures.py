@@ -68,6 +68,9 @@ def reinit(model, seed):
 
 
 def export(module, args, path, input_names, output_names, dynamic_axes):
+    """The exporter restores the wrapper's training flag afterwards, recursively: a wrapper left
+    in training mode would switch dropout on in the wrapped model for the expected outputs."""
+    module.eval()
     path.parent.mkdir(parents=True, exist_ok=True)
     torch.onnx.export(module, args, str(path), input_names=input_names,
                       output_names=output_names, dynamic_axes=dynamic_axes,
