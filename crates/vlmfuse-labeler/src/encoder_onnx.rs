@@ -100,8 +100,8 @@ impl OnnxSentenceEncoder {
         }
         let model_path = find_model(cfg)?;
         let tok_path = find_tokenizer(&cfg.model_dir, &model_path)?;
-        let mut tokenizer =
-            Tokenizer::from_file(&tok_path).map_err(|e| LabelerError::Tokenizer(format!("{}: {e}", tok_path.display())))?;
+        let mut tokenizer = Tokenizer::from_file(&tok_path)
+            .map_err(|e| LabelerError::Tokenizer(format!("{}: {e}", tok_path.display())))?;
         // tokenizer.json of MiniLM pads to a fixed 128; one batch only needs its longest text.
         let padding = PaddingParams {
             strategy: PaddingStrategy::BatchLongest,
@@ -135,7 +135,11 @@ impl OnnxSentenceEncoder {
                 )));
             }
             if o.dtype().tensor_type() != Some(TensorElementType::Int64) {
-                return Err(sig(format!("input `{}` is {}, not int64", o.name(), o.dtype())));
+                return Err(sig(format!(
+                    "input `{}` is {}, not int64",
+                    o.name(),
+                    o.dtype()
+                )));
             }
             names.push(o.name().to_string());
         }
@@ -149,17 +153,18 @@ impl OnnxSentenceEncoder {
         }
         let has_token_types = names.iter().any(|n| n == "token_type_ids");
         let find = |name: &str| session.outputs().iter().find(|o| o.name() == name);
-        let (output_name, output) = if let Some(o) = find("last_hidden_state").or_else(|| find("token_embeddings")) {
-            (o.name().to_string(), Output::Tokens)
-        } else if let Some(o) = find("sentence_embedding") {
-            (o.name().to_string(), Output::Pooled)
-        } else {
-            return Err(sig(format!(
-                "no `last_hidden_state`, `token_embeddings` or `sentence_embedding` output \
+        let (output_name, output) =
+            if let Some(o) = find("last_hidden_state").or_else(|| find("token_embeddings")) {
+                (o.name().to_string(), Output::Tokens)
+            } else if let Some(o) = find("sentence_embedding") {
+                (o.name().to_string(), Output::Pooled)
+            } else {
+                return Err(sig(format!(
+                    "no `last_hidden_state`, `token_embeddings` or `sentence_embedding` output \
                  (outputs: {})",
-                describe_outlets(session.outputs())
-            )));
-        };
+                    describe_outlets(session.outputs())
+                )));
+            };
 
         let mut enc = Self {
             tokenizer,
@@ -250,20 +255,32 @@ impl SentenceEncoder for OnnxSentenceEncoder {
         let run_err = |e: vlmfuse_ort::ort::Error| LabelerError::from(OrtError::Run(e.to_string()));
         let shape = [n, seq];
         let mut inputs: Vec<(&str, SessionInputValue<'_>)> = vec![
-            ("input_ids", TensorRef::from_array_view((shape, &ids[..])).map_err(run_err)?.into()),
-            ("attention_mask", TensorRef::from_array_view((shape, &mask[..])).map_err(run_err)?.into()),
+            (
+                "input_ids",
+                TensorRef::from_array_view((shape, &ids[..]))
+                    .map_err(run_err)?
+                    .into(),
+            ),
+            (
+                "attention_mask",
+                TensorRef::from_array_view((shape, &mask[..]))
+                    .map_err(run_err)?
+                    .into(),
+            ),
         ];
         if self.has_token_types {
             inputs.push((
                 "token_type_ids",
-                TensorRef::from_array_view((shape, &types[..])).map_err(run_err)?.into(),
+                TensorRef::from_array_view((shape, &types[..]))
+                    .map_err(run_err)?
+                    .into(),
             ));
         }
         let mut session = self.session.lock().unwrap_or_else(|p| p.into_inner());
         let outputs = session.run(inputs).map_err(run_err)?;
-        let value = outputs
-            .get(&self.output_name)
-            .ok_or_else(|| LabelerError::Model(format!("no `{}` in the outputs", self.output_name)))?;
+        let value = outputs.get(&self.output_name).ok_or_else(|| {
+            LabelerError::Model(format!("no `{}` in the outputs", self.output_name))
+        })?;
         let (oshape, data) = value.try_extract_tensor::<f32>().map_err(run_err)?;
         let bad_shape = || {
             LabelerError::Model(format!(
@@ -286,7 +303,9 @@ impl SentenceEncoder for OnnxSentenceEncoder {
                 if oshape.len() != 2 || oshape[0] != n as i64 {
                     return Err(bad_shape());
                 }
-                data.chunks_exact(oshape[1] as usize).map(<[f32]>::to_vec).collect()
+                data.chunks_exact(oshape[1] as usize)
+                    .map(<[f32]>::to_vec)
+                    .collect()
             }
         };
         Ok(rows.into_iter().map(unit).collect())
@@ -311,7 +330,12 @@ fn mean_pool(tokens: &[f32], mask: &[i64], dim: usize) -> Vec<f32> {
 
 /// L2 normalisation with the same floor as the candle encoder (an all-zero vector stays zero).
 fn unit(v: Vec<f32>) -> Vec<f32> {
-    let n = v.iter().map(|x| (*x as f64).powi(2)).sum::<f64>().sqrt().max(1e-12);
+    let n = v
+        .iter()
+        .map(|x| (*x as f64).powi(2))
+        .sum::<f64>()
+        .sqrt()
+        .max(1e-12);
     v.into_iter().map(|x| (x as f64 / n) as f32).collect()
 }
 
@@ -323,16 +347,20 @@ fn find_model(cfg: &OnnxEncoderConfig) -> Result<PathBuf, LabelerError> {
             .map(|c| cfg.model_dir.join(c))
             .collect(),
     };
-    candidates.iter().find(|p| p.is_file()).cloned().ok_or_else(|| {
-        LabelerError::AssetMissing(format!(
-            "no ONNX sentence encoder at {}",
-            candidates
-                .iter()
-                .map(|p| p.display().to_string())
-                .collect::<Vec<_>>()
-                .join(" or ")
-        ))
-    })
+    candidates
+        .iter()
+        .find(|p| p.is_file())
+        .cloned()
+        .ok_or_else(|| {
+            LabelerError::AssetMissing(format!(
+                "no ONNX sentence encoder at {}",
+                candidates
+                    .iter()
+                    .map(|p| p.display().to_string())
+                    .collect::<Vec<_>>()
+                    .join(" or ")
+            ))
+        })
 }
 
 /// `tokenizer.json` in the model directory, beside the ONNX file, or one level above it (HF
@@ -346,16 +374,20 @@ fn find_tokenizer(dir: &Path, model: &Path) -> Result<PathBuf, LabelerError> {
         }
     }
     searched.dedup();
-    searched.iter().find(|p| p.is_file()).cloned().ok_or_else(|| {
-        LabelerError::AssetMissing(format!(
-            "no tokenizer.json at {}",
-            searched
-                .iter()
-                .map(|p| p.display().to_string())
-                .collect::<Vec<_>>()
-                .join(", ")
-        ))
-    })
+    searched
+        .iter()
+        .find(|p| p.is_file())
+        .cloned()
+        .ok_or_else(|| {
+            LabelerError::AssetMissing(format!(
+                "no tokenizer.json at {}",
+                searched
+                    .iter()
+                    .map(|p| p.display().to_string())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ))
+        })
 }
 
 #[cfg(test)]
@@ -366,7 +398,10 @@ mod tests {
     fn pooling_ignores_padding_and_normalises() {
         // Two tokens of dim 2, the second padded away.
         let v = unit(mean_pool(&[3.0, 4.0, 100.0, -100.0], &[1, 0], 2));
-        assert!((v[0] - 0.6).abs() < 1e-7 && (v[1] - 0.8).abs() < 1e-7, "{v:?}");
+        assert!(
+            (v[0] - 0.6).abs() < 1e-7 && (v[1] - 0.8).abs() < 1e-7,
+            "{v:?}"
+        );
         assert_eq!(unit(vec![0.0, 0.0]), vec![0.0, 0.0]);
     }
 

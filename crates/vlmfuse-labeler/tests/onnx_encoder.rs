@@ -11,9 +11,7 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use candle_transformers::models::bert::{BertModel, Config as BertConfig};
 use tokenizers::{PaddingParams, Tokenizer, TruncationParams};
-use vlmfuse_labeler::{
-    LabelerErrorKind, OnnxEncoderConfig, OnnxSentenceEncoder, SentenceEncoder,
-};
+use vlmfuse_labeler::{LabelerErrorKind, OnnxEncoderConfig, OnnxSentenceEncoder, SentenceEncoder};
 use vlmfuse_ort::SessionOptions;
 
 fn data(rel: &str) -> PathBuf {
@@ -33,7 +31,11 @@ fn expected(dir: &str) -> Expected {
         serde_json::from_str(&std::fs::read_to_string(data(dir).join("expected.json")).unwrap())
             .unwrap();
     let strs = |v: &serde_json::Value| -> Vec<String> {
-        v.as_array().unwrap().iter().map(|s| s.as_str().unwrap().to_string()).collect()
+        v.as_array()
+            .unwrap()
+            .iter()
+            .map(|s| s.as_str().unwrap().to_string())
+            .collect()
     };
     Expected {
         texts: strs(&v["texts"]),
@@ -41,14 +43,26 @@ fn expected(dir: &str) -> Expected {
             ids.as_array()
                 .unwrap()
                 .iter()
-                .map(|r| r.as_array().unwrap().iter().map(|i| i.as_u64().unwrap() as u32).collect())
+                .map(|r| {
+                    r.as_array()
+                        .unwrap()
+                        .iter()
+                        .map(|i| i.as_u64().unwrap() as u32)
+                        .collect()
+                })
                 .collect()
         }),
         embeddings: v["embeddings"]
             .as_array()
             .unwrap()
             .iter()
-            .map(|r| r.as_array().unwrap().iter().map(|x| x.as_f64().unwrap() as f32).collect())
+            .map(|r| {
+                r.as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|x| x.as_f64().unwrap() as f32)
+                    .collect()
+            })
             .collect(),
     }
 }
@@ -61,7 +75,10 @@ fn cosine(a: &[f32], b: &[f32]) -> f64 {
 }
 
 fn max_abs(a: &[f32], b: &[f32]) -> f32 {
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
 }
 
 /// candle-transformers' BERT on the same safetensors, pooled the same way (the reference the
@@ -70,23 +87,34 @@ fn candle_embed(dir: &Path, texts: &[&str]) -> Vec<Vec<f32>> {
     let cfg: BertConfig =
         serde_json::from_str(&std::fs::read_to_string(dir.join("config.json")).unwrap()).unwrap();
     let vb = unsafe {
-        VarBuilder::from_mmaped_safetensors(&[dir.join("model.safetensors")], DType::F32, &Device::Cpu)
-            .unwrap()
+        VarBuilder::from_mmaped_safetensors(
+            &[dir.join("model.safetensors")],
+            DType::F32,
+            &Device::Cpu,
+        )
+        .unwrap()
     };
     let model = BertModel::load(vb, &cfg).unwrap();
     let mut tok = Tokenizer::from_file(dir.join("tokenizer.json")).unwrap();
     tok.with_padding(Some(PaddingParams::default()));
-    tok.with_truncation(Some(TruncationParams { max_length: 128, ..Default::default() }))
-        .unwrap();
+    tok.with_truncation(Some(TruncationParams {
+        max_length: 128,
+        ..Default::default()
+    }))
+    .unwrap();
     let enc = tok.encode_batch(texts.to_vec(), true).unwrap();
     let stack = |f: &dyn Fn(&tokenizers::Encoding) -> &[u32]| {
-        let rows: Vec<Tensor> =
-            enc.iter().map(|e| Tensor::new(f(e), &Device::Cpu).unwrap()).collect();
+        let rows: Vec<Tensor> = enc
+            .iter()
+            .map(|e| Tensor::new(f(e), &Device::Cpu).unwrap())
+            .collect();
         Tensor::stack(&rows, 0).unwrap()
     };
     let ids = stack(&|e| e.get_ids());
     let mask = stack(&|e| e.get_attention_mask());
-    let hidden = model.forward(&ids, &ids.zeros_like().unwrap(), Some(&mask)).unwrap();
+    let hidden = model
+        .forward(&ids, &ids.zeros_like().unwrap(), Some(&mask))
+        .unwrap();
     let m = mask.to_dtype(DType::F32).unwrap().unsqueeze(2).unwrap();
     let mean = hidden
         .broadcast_mul(&m)
@@ -172,7 +200,11 @@ fn batching_does_not_leak_padding_and_threads_change_nothing() {
     let batch = enc.encode(&texts).unwrap();
     for (t, b) in texts.iter().zip(&batch) {
         let alone = enc.encode(&[t]).unwrap();
-        assert!(max_abs(&alone[0], b) < 1e-5, "{t}: {}", max_abs(&alone[0], b));
+        assert!(
+            max_abs(&alone[0], b) < 1e-5,
+            "{t}: {}",
+            max_abs(&alone[0], b)
+        );
     }
     let two = OnnxSentenceEncoder::load(&OnnxEncoderConfig {
         session: SessionOptions::with_threads(2),
@@ -206,8 +238,16 @@ fn wrong_models_are_clear_errors() {
     }
     // An image encoder where a sentence encoder belongs.
     let dir = tempfile::tempdir().unwrap();
-    std::fs::copy(data("tiny-clip/onnx/vision_model.onnx"), dir.path().join("model.onnx")).unwrap();
-    std::fs::copy(data("tiny-bert/tokenizer.json"), dir.path().join("tokenizer.json")).unwrap();
+    std::fs::copy(
+        data("tiny-clip/onnx/vision_model.onnx"),
+        dir.path().join("model.onnx"),
+    )
+    .unwrap();
+    std::fs::copy(
+        data("tiny-bert/tokenizer.json"),
+        dir.path().join("tokenizer.json"),
+    )
+    .unwrap();
     let e = OnnxSentenceEncoder::load(&OnnxEncoderConfig::new(dir.path())).unwrap_err();
     assert_eq!(e.kind(), LabelerErrorKind::Model, "{e}");
     assert!(e.to_string().contains("pixel_values"), "{e}");
@@ -215,7 +255,11 @@ fn wrong_models_are_clear_errors() {
     // A graph whose external weights are missing.
     let dir = tempfile::tempdir().unwrap();
     std::fs::copy(data("tiny-bert/graph.onnx"), dir.path().join("model.onnx")).unwrap();
-    std::fs::copy(data("tiny-bert/tokenizer.json"), dir.path().join("tokenizer.json")).unwrap();
+    std::fs::copy(
+        data("tiny-bert/tokenizer.json"),
+        dir.path().join("tokenizer.json"),
+    )
+    .unwrap();
     let e = OnnxSentenceEncoder::load(&OnnxEncoderConfig::new(dir.path())).unwrap_err();
     assert_eq!(e.kind(), LabelerErrorKind::Model, "{e}");
     assert!(e.to_string().contains("model.safetensors"), "{e}");

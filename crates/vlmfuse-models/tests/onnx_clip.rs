@@ -51,9 +51,10 @@ struct Expected {
 
 impl Expected {
     fn load(dir: &str) -> Self {
-        let v: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(data(dir).join("expected.json")).unwrap())
-                .unwrap();
+        let v: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(data(dir).join("expected.json")).unwrap(),
+        )
+        .unwrap();
         let floats = |v: &serde_json::Value| -> Vec<f32> {
             v.as_array()
                 .unwrap()
@@ -76,7 +77,12 @@ impl Expected {
             .collect();
         Self {
             frames,
-            image_embeds: v["image_embeds"].as_array().unwrap().iter().map(floats).collect(),
+            image_embeds: v["image_embeds"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(floats)
+                .collect(),
             clip_embedding: floats(&v["clip_embedding"]),
         }
     }
@@ -111,7 +117,10 @@ fn cosine(a: &[f32], b: &[f32]) -> f64 {
 }
 
 fn max_abs(a: &[f32], b: &[f32]) -> f32 {
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
 }
 
 fn load(dir: &Path) -> OnnxClipEmbedder {
@@ -129,7 +138,12 @@ fn preprocessing_equals_clip_image_processor() {
         p.process_into(f, &mut out).unwrap();
         let d = max_abs(&out, &hf[k * 3072..(k + 1) * 3072]);
         // Float rounding only: one grey level is 1/255/0.27 ≈ 0.0146 here.
-        assert!(d < 1e-4, "frame {k} ({}x{}): max diff {d}", f.width, f.height);
+        assert!(
+            d < 1e-4,
+            "frame {k} ({}x{}): max diff {d}",
+            f.width,
+            f.height
+        );
     }
 }
 
@@ -151,7 +165,11 @@ fn vision_export_matches_torch() {
     for (k, (got, want)) in rows.iter().zip(&exp.image_embeds).enumerate() {
         let c = cosine(got, want);
         assert!(c >= 0.99999, "frame {k}: cosine {c}");
-        assert!(max_abs(got, want) < 1e-4, "frame {k}: {}", max_abs(got, want));
+        assert!(
+            max_abs(got, want) < 1e-4,
+            "frame {k}: {}",
+            max_abs(got, want)
+        );
     }
     // End to end from RGB frames (including a 1280x720 one).
     let e = emb.embed(&exp.refs()).unwrap();
@@ -183,17 +201,27 @@ fn same_weights_as_candle_give_the_same_embeddings() {
         px.extend(clip_preprocess(*f, 32).unwrap());
     }
     let ours = onnx.pixel_embeddings(&px, frames.len()).unwrap();
-    let theirs = candle.frame_embeddings(&frames).unwrap().to_vec2::<f32>().unwrap();
+    let theirs = candle
+        .frame_embeddings(&frames)
+        .unwrap()
+        .to_vec2::<f32>()
+        .unwrap();
     for (k, (a, b)) in ours.iter().zip(&theirs).enumerate() {
         let c = cosine(a, b);
         assert!(c >= 0.99999, "frame {k}: ort vs candle cosine {c}");
     }
-    let c = cosine(&onnx.embed_pixels(&px, frames.len()).unwrap(), &candle.embed(&frames).unwrap());
+    let c = cosine(
+        &onnx.embed_pixels(&px, frames.len()).unwrap(),
+        &candle.embed(&frames).unwrap(),
+    );
     assert!(c >= 0.99999, "clip embedding ort vs candle: {c}");
 
     // Each backend with its own preprocessing: PIL-exact here, f32 in candle (within a grey
     // level on these frames), so the clip embeddings still agree closely.
-    let c = cosine(&onnx.embed(&frames).unwrap(), &candle.embed(&frames).unwrap());
+    let c = cosine(
+        &onnx.embed(&frames).unwrap(),
+        &candle.embed(&frames).unwrap(),
+    );
     assert!(c >= 0.9999, "ort vs candle from frames: {c}");
 }
 
@@ -261,7 +289,13 @@ fn layouts_named_files_hub_cache_and_thread_counts() {
         model_file: Some("onnx/vision_model_fp32.onnx".into()),
         ..OnnxClipConfig::new(WeightSource::local(named.path()))
     };
-    assert_eq!(OnnxClipEmbedder::load(&cfg).unwrap().embed(&exp.refs()).unwrap(), want);
+    assert_eq!(
+        OnnxClipEmbedder::load(&cfg)
+            .unwrap()
+            .embed(&exp.refs())
+            .unwrap(),
+        want
+    );
 
     // The HF cache (snapshot entries are symlinks into blobs/), Optimum's layout.
     let cache = tempfile::tempdir().unwrap();
@@ -301,44 +335,61 @@ fn bad_models_and_inputs_are_clear_errors() {
 
     // Nothing to load: every place looked at is named.
     let empty = tempfile::tempdir().unwrap();
-    let e = OnnxClipEmbedder::load(&OnnxClipConfig::new(WeightSource::local(empty.path()))).unwrap_err();
+    let e = OnnxClipEmbedder::load(&OnnxClipConfig::new(WeightSource::local(empty.path())))
+        .unwrap_err();
     assert_eq!(e.kind(), "missing_weights", "{e}");
     assert!(e.to_string().contains("onnx/vision_model.onnx"), "{e}");
 
     // Not an ONNX file.
     let junk = tempfile::tempdir().unwrap();
     std::fs::write(junk.path().join("model.onnx"), b"not a model").unwrap();
-    let e = OnnxClipEmbedder::load(&OnnxClipConfig::new(WeightSource::local(junk.path()))).unwrap_err();
+    let e =
+        OnnxClipEmbedder::load(&OnnxClipConfig::new(WeightSource::local(junk.path()))).unwrap_err();
     assert_eq!(e.kind(), "bad_model", "{e}");
     assert!(e.to_string().contains("model.onnx"), "{e}");
 
     // A valid ONNX model that is not an image encoder (the tiny BERT).
     let bert = tempfile::tempdir().unwrap();
-    copy_dir(&data("tiny-bert"), bert.path(), &[("model.onnx", "model.onnx")]);
-    let e = OnnxClipEmbedder::load(&OnnxClipConfig::new(WeightSource::local(bert.path()))).unwrap_err();
+    copy_dir(
+        &data("tiny-bert"),
+        bert.path(),
+        &[("model.onnx", "model.onnx")],
+    );
+    let e =
+        OnnxClipEmbedder::load(&OnnxClipConfig::new(WeightSource::local(bert.path()))).unwrap_err();
     assert_eq!(e.kind(), "bad_model", "{e}");
     assert!(e.to_string().contains("token_type_ids"), "{e}");
 
     // Preprocessing that does not fit the model's input.
     let mismatch = tempfile::tempdir().unwrap();
-    copy_dir(&src, mismatch.path(), &[("onnx/vision_model.onnx", "onnx/vision_model.onnx")]);
+    copy_dir(
+        &src,
+        mismatch.path(),
+        &[("onnx/vision_model.onnx", "onnx/vision_model.onnx")],
+    );
     std::fs::write(
         mismatch.path().join("preprocessor_config.json"),
         r#"{"size": {"shortest_edge": 64}, "crop_size": {"height": 64, "width": 64}}"#,
     )
     .unwrap();
-    let e = OnnxClipEmbedder::load(&OnnxClipConfig::new(WeightSource::local(mismatch.path()))).unwrap_err();
+    let e = OnnxClipEmbedder::load(&OnnxClipConfig::new(WeightSource::local(mismatch.path())))
+        .unwrap_err();
     assert_eq!(e.kind(), "bad_config", "{e}");
-    assert!(e.to_string().contains("64x64") && e.to_string().contains("32x32"), "{e}");
+    assert!(
+        e.to_string().contains("64x64") && e.to_string().contains("32x32"),
+        "{e}"
+    );
 
     // Malformed preprocessor config.
     std::fs::write(mismatch.path().join("preprocessor_config.json"), "{").unwrap();
-    let e = OnnxClipEmbedder::load(&OnnxClipConfig::new(WeightSource::local(mismatch.path()))).unwrap_err();
+    let e = OnnxClipEmbedder::load(&OnnxClipConfig::new(WeightSource::local(mismatch.path())))
+        .unwrap_err();
     assert_eq!(e.kind(), "bad_config", "{e}");
 
     // No preprocessor config: CLIP's defaults at the model's input size.
     std::fs::remove_file(mismatch.path().join("preprocessor_config.json")).unwrap();
-    let e = OnnxClipEmbedder::load(&OnnxClipConfig::new(WeightSource::local(mismatch.path()))).unwrap();
+    let e =
+        OnnxClipEmbedder::load(&OnnxClipConfig::new(WeightSource::local(mismatch.path()))).unwrap();
     assert_eq!(e.processor(), &ImageProcessor::clip(32));
 
     // Bad frames.
@@ -351,5 +402,8 @@ fn bad_models_and_inputs_are_clear_errors() {
         rgb: &short,
     };
     assert_eq!(emb.embed(&[bad]).unwrap_err().kind(), "invalid_input");
-    assert_eq!(emb.pixel_embeddings(&[0.0; 10], 1).unwrap_err().kind(), "invalid_input");
+    assert_eq!(
+        emb.pixel_embeddings(&[0.0; 10], 1).unwrap_err().kind(),
+        "invalid_input"
+    );
 }

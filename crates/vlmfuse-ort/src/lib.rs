@@ -228,9 +228,8 @@ pub fn session_from_file(path: &Path, opts: &SessionOptions) -> Result<Session, 
     }
     let env = environment(opts.library.as_deref())?;
     let threads = opts.resolved_threads();
-    let opt_err = |e: ort::Error<ort::session::builder::SessionBuilder>| {
-        OrtError::Options(e.to_string())
-    };
+    let opt_err =
+        |e: ort::Error<ort::session::builder::SessionBuilder>| OrtError::Options(e.to_string());
     let mut builder = Session::builder(env)
         .map_err(|e| OrtError::Options(e.to_string()))?
         .with_optimization_level(GraphOptimizationLevel::All)
@@ -283,15 +282,21 @@ mod tests {
         assert_eq!(e.kind(), "runtime_missing");
         let s = e.to_string();
         assert!(s.contains("/nonexistent/libonnxruntime.so"), "{s}");
-        assert!(s.contains("fetch-assets.sh") && s.contains(DYLIB_ENV), "{s}");
+        assert!(
+            s.contains("fetch-assets.sh") && s.contains(DYLIB_ENV),
+            "{s}"
+        );
     }
 
     #[test]
     fn zero_threads_is_refused_before_anything_loads() {
-        let e = session_from_file(Path::new("/x.onnx"), &SessionOptions::with_threads(0))
-            .unwrap_err();
+        let e =
+            session_from_file(Path::new("/x.onnx"), &SessionOptions::with_threads(0)).unwrap_err();
         assert_eq!(e.kind(), "session_options");
-        assert_eq!(SessionOptions::default().resolved_threads(), default_threads());
+        assert_eq!(
+            SessionOptions::default().resolved_threads(),
+            default_threads()
+        );
     }
 
     #[test]

@@ -53,7 +53,9 @@ fn a_bad_library_is_an_error_then_the_real_one_loads_and_runs() {
             "token_type_ids" => TensorRef::from_array_view(([1usize, 3], &zeros[..])).unwrap(),
         ])
         .unwrap();
-    let (shape, data) = out["last_hidden_state"].try_extract_tensor::<f32>().unwrap();
+    let (shape, data) = out["last_hidden_state"]
+        .try_extract_tensor::<f32>()
+        .unwrap();
     assert_eq!(&shape[..], &[1, 3, 32]);
     assert!(data.iter().all(|x| x.is_finite()));
 

@@ -86,10 +86,12 @@ impl ImageProcessor {
         let crop = if flag("do_center_crop")? {
             Some(match v.get("crop_size") {
                 None | Some(Value::Null) => (224, 224),
-                Some(s) => match parse_size(s, false).map_err(|m| bad(format!("`crop_size`: {m}")))? {
-                    ResizeTo::Exact { width, height } => (width, height),
-                    ResizeTo::ShortestEdge(n) => (n, n),
-                },
+                Some(s) => {
+                    match parse_size(s, false).map_err(|m| bad(format!("`crop_size`: {m}")))? {
+                        ResizeTo::Exact { width, height } => (width, height),
+                        ResizeTo::ShortestEdge(n) => (n, n),
+                    }
+                }
             })
         } else {
             None
@@ -124,7 +126,9 @@ impl ImageProcessor {
             ([0.0; 3], [1.0; 3])
         };
         if std.iter().any(|s| *s == 0.0 || !s.is_finite()) {
-            return Err(bad(format!("`image_std` {std:?} has a zero or non-finite entry")));
+            return Err(bad(format!(
+                "`image_std` {std:?} has a zero or non-finite entry"
+            )));
         }
         let p = Self {
             resize,
@@ -144,7 +148,9 @@ impl ImageProcessor {
             Some(ResizeTo::ShortestEdge(0)) | Some(ResizeTo::Exact { width: 0, .. }) => {
                 return Err(bad("resize to 0 pixels".into()))
             }
-            Some(ResizeTo::Exact { height: 0, .. }) => return Err(bad("resize to 0 pixels".into())),
+            Some(ResizeTo::Exact { height: 0, .. }) => {
+                return Err(bad("resize to 0 pixels".into()))
+            }
             _ => {}
         }
         if let Some((w, h)) = self.crop {
@@ -270,7 +276,9 @@ impl ImageProcessor {
                     .collect();
                 handles.into_iter().try_for_each(|h| {
                     h.join().unwrap_or_else(|_| {
-                        Err(ModelError::InvalidInput("preprocessing thread panicked".into()))
+                        Err(ModelError::InvalidInput(
+                            "preprocessing thread panicked".into(),
+                        ))
                     })
                 })
             })?;
@@ -329,23 +337,32 @@ impl<'a> Worker<'a> {
         let src = fir::images::ImageRef::new(fw, fh, frame.rgb, fir::PixelType::U8x3)
             .map_err(|e| ModelError::InvalidInput(format!("frame buffer: {e}")))?;
         let alg = fir::ResizeAlg::Convolution(self.p.filter());
-        let resize_err =
-            |e: fir::ResizeError| ModelError::InvalidInput(format!("resize {fw}x{fh} → {cw}x{ch}: {e}"));
+        let resize_err = |e: fir::ResizeError| {
+            ModelError::InvalidInput(format!("resize {fw}x{fh} → {cw}x{ch}: {e}"))
+        };
         self.tmp.resize(cw as usize * fh as usize * 3, 0);
-        let mut tmp = fir::images::Image::from_slice_u8(cw, fh, &mut self.tmp, fir::PixelType::U8x3)
-            .map_err(|e| ModelError::InvalidInput(format!("resize buffer: {e}")))?;
-        let horizontal = fir::ResizeOptions::new()
-            .resize_alg(alg)
-            .crop(left as f64 * sx, 0.0, cw as f64 * sx, fh as f64);
+        let mut tmp =
+            fir::images::Image::from_slice_u8(cw, fh, &mut self.tmp, fir::PixelType::U8x3)
+                .map_err(|e| ModelError::InvalidInput(format!("resize buffer: {e}")))?;
+        let horizontal = fir::ResizeOptions::new().resize_alg(alg).crop(
+            left as f64 * sx,
+            0.0,
+            cw as f64 * sx,
+            fh as f64,
+        );
         self.resizer
             .resize(&src, &mut tmp, &horizontal)
             .map_err(resize_err)?;
         self.rgb.resize(want, 0);
-        let mut dst = fir::images::Image::from_slice_u8(cw, ch, &mut self.rgb, fir::PixelType::U8x3)
-            .map_err(|e| ModelError::InvalidInput(format!("resize buffer: {e}")))?;
-        let vertical = fir::ResizeOptions::new()
-            .resize_alg(alg)
-            .crop(0.0, top as f64 * sy, cw as f64, ch as f64 * sy);
+        let mut dst =
+            fir::images::Image::from_slice_u8(cw, ch, &mut self.rgb, fir::PixelType::U8x3)
+                .map_err(|e| ModelError::InvalidInput(format!("resize buffer: {e}")))?;
+        let vertical = fir::ResizeOptions::new().resize_alg(alg).crop(
+            0.0,
+            top as f64 * sy,
+            cw as f64,
+            ch as f64 * sy,
+        );
         self.resizer
             .resize(&tmp, &mut dst, &vertical)
             .map_err(resize_err)?;
@@ -393,7 +410,9 @@ fn parse_size(s: &Value, shortest_ok: bool) -> Result<ResizeTo, String> {
                     width: px(w)?,
                     height: px(h)?,
                 }),
-                _ => Err(format!("{s} has neither `shortest_edge` nor `height` + `width`")),
+                _ => Err(format!(
+                    "{s} has neither `shortest_edge` nor `height` + `width`"
+                )),
             }
         }
         other => Err(format!("{other} is neither a number nor an object")),
@@ -428,7 +447,11 @@ mod tests {
 
     fn frame(seed: u32, w: u32, h: u32) -> Vec<u8> {
         (0..w * h * 3)
-            .map(|i| (i.wrapping_mul(2_654_435_761).wrapping_add(seed.wrapping_mul(97)) >> 7) as u8)
+            .map(|i| {
+                (i.wrapping_mul(2_654_435_761)
+                    .wrapping_add(seed.wrapping_mul(97))
+                    >> 7) as u8
+            })
             .collect()
     }
 
@@ -442,13 +465,25 @@ mod tests {
         assert_eq!(p, ImageProcessor::clip(224));
         // Old feature-extractor style: plain integers.
         let old = json!({"crop_size": 224, "size": 224, "feature_extractor_type": "CLIPFeatureExtractor"});
-        assert_eq!(ImageProcessor::from_preprocessor_config(&old).unwrap(), ImageProcessor::clip(224));
+        assert_eq!(
+            ImageProcessor::from_preprocessor_config(&old).unwrap(),
+            ImageProcessor::clip(224)
+        );
         // Nothing at all: transformers' defaults, which are CLIP's.
-        assert_eq!(ImageProcessor::from_preprocessor_config(&json!({})).unwrap(), ImageProcessor::clip(224));
+        assert_eq!(
+            ImageProcessor::from_preprocessor_config(&json!({})).unwrap(),
+            ImageProcessor::clip(224)
+        );
         let exact = json!({"size": {"height": 256, "width": 320}, "do_center_crop": false,
             "resample": 2, "do_normalize": false});
         let p = ImageProcessor::from_preprocessor_config(&exact).unwrap();
-        assert_eq!(p.resize, Some(ResizeTo::Exact { width: 320, height: 256 }));
+        assert_eq!(
+            p.resize,
+            Some(ResizeTo::Exact {
+                width: 320,
+                height: 256
+            })
+        );
         assert_eq!(p.resample, Resample::Bilinear);
         assert_eq!(p.output_size(1280, 720), (320, 256));
         assert_eq!((p.mean, p.std), ([0.0; 3], [1.0; 3]));
@@ -477,7 +512,15 @@ mod tests {
         let p = ImageProcessor::clip(16);
         let rgb: Vec<u8> = (0..40 * 24).flat_map(|_| [50u8, 128, 250]).collect();
         let mut out = vec![0f32; 3 * 16 * 16];
-        p.process_into(FrameRef { width: 40, height: 24, rgb: &rgb }, &mut out).unwrap();
+        p.process_into(
+            FrameRef {
+                width: 40,
+                height: 24,
+                rgb: &rgb,
+            },
+            &mut out,
+        )
+        .unwrap();
         for c in 0..3 {
             let want = ([50.0, 128.0, 250.0][c] / 255.0 - CLIP_MEAN[c]) / CLIP_STD[c];
             for v in &out[c * 256..(c + 1) * 256] {
@@ -489,10 +532,22 @@ mod tests {
     #[test]
     fn crop_only_copies_the_center() {
         // No resize, crop 2x2 of a 4x2 frame: columns 1..3, untouched.
-        let p = ImageProcessor { resize: None, crop: Some((2, 2)), ..ImageProcessor::clip(2) };
+        let p = ImageProcessor {
+            resize: None,
+            crop: Some((2, 2)),
+            ..ImageProcessor::clip(2)
+        };
         let rgb = frame(3, 4, 2);
         let mut out = vec![0f32; 12];
-        p.process_into(FrameRef { width: 4, height: 2, rgb: &rgb }, &mut out).unwrap();
+        p.process_into(
+            FrameRef {
+                width: 4,
+                height: 2,
+                rgb: &rgb,
+            },
+            &mut out,
+        )
+        .unwrap();
         let t = p.table();
         for c in 0..3 {
             for y in 0..2 {
@@ -510,31 +565,73 @@ mod tests {
         let frames: Vec<Vec<u8>> = (0..5).map(|s| frame(s, 96, 54)).collect();
         let refs: Vec<FrameRef> = frames
             .iter()
-            .map(|rgb| FrameRef { width: 96, height: 54, rgb })
+            .map(|rgb| FrameRef {
+                width: 96,
+                height: 54,
+                rgb,
+            })
             .collect();
-        let (two, dims) = p.process_batch(&refs, NonZeroUsize::new(2).unwrap()).unwrap();
-        let (one, _) = p.process_batch(&refs, NonZeroUsize::new(1).unwrap()).unwrap();
+        let (two, dims) = p
+            .process_batch(&refs, NonZeroUsize::new(2).unwrap())
+            .unwrap();
+        let (one, _) = p
+            .process_batch(&refs, NonZeroUsize::new(1).unwrap())
+            .unwrap();
         assert_eq!(dims, (32, 32));
         assert_eq!(two, one);
         let mut single = vec![0f32; 3 * 32 * 32];
         p.process_into(refs[3], &mut single).unwrap();
         assert_eq!(&two[3 * 3072..4 * 3072], &single[..]);
 
-        assert_eq!(p.process_batch(&[], NonZeroUsize::MIN).unwrap_err().kind(), "invalid_input");
+        assert_eq!(
+            p.process_batch(&[], NonZeroUsize::MIN).unwrap_err().kind(),
+            "invalid_input"
+        );
         let short = [0u8; 7];
-        let bad = FrameRef { width: 2, height: 2, rgb: &short };
-        assert_eq!(p.process_batch(&[refs[0], bad], NonZeroUsize::MIN).unwrap_err().kind(), "invalid_input");
+        let bad = FrameRef {
+            width: 2,
+            height: 2,
+            rgb: &short,
+        };
+        assert_eq!(
+            p.process_batch(&[refs[0], bad], NonZeroUsize::MIN)
+                .unwrap_err()
+                .kind(),
+            "invalid_input"
+        );
         // Without a crop, frames of different shapes cannot share a batch.
-        let free = ImageProcessor { crop: None, ..p.clone() };
+        let free = ImageProcessor {
+            crop: None,
+            ..p.clone()
+        };
         let other = frame(9, 40, 40);
         let e = free
-            .process_batch(&[refs[0], FrameRef { width: 40, height: 40, rgb: &other }], NonZeroUsize::MIN)
+            .process_batch(
+                &[
+                    refs[0],
+                    FrameRef {
+                        width: 40,
+                        height: 40,
+                        rgb: &other,
+                    },
+                ],
+                NonZeroUsize::MIN,
+            )
             .unwrap_err();
         assert!(e.to_string().contains("different sizes"), "{e}");
         // No resize and a frame smaller than the crop.
         let crop_only = ImageProcessor { resize: None, ..p };
         let tiny = frame(1, 8, 8);
-        let e = crop_only.process_into(FrameRef { width: 8, height: 8, rgb: &tiny }, &mut vec![0.0; 3072]).unwrap_err();
+        let e = crop_only
+            .process_into(
+                FrameRef {
+                    width: 8,
+                    height: 8,
+                    rgb: &tiny,
+                },
+                &mut vec![0.0; 3072],
+            )
+            .unwrap_err();
         assert!(e.to_string().contains("smaller than"), "{e}");
     }
 }

@@ -146,7 +146,10 @@ impl OnnxClipEmbedder {
             )));
         };
         if shape[1] != 3 && shape[1] >= 0 {
-            return Err(sig(format!("image input has {} channels, frames are RGB", shape[1])));
+            return Err(sig(format!(
+                "image input has {} channels, frames are RGB",
+                shape[1]
+            )));
         }
         if !session.outputs().iter().any(|o| o.name() == "image_embeds") {
             return Err(sig(format!(
@@ -198,14 +201,23 @@ impl OnnxClipEmbedder {
                  onnx/vision_model.onnx for identical ones");
         }
 
-        let threads = NonZeroUsize::new(cfg.session.resolved_threads()).unwrap_or(NonZeroUsize::MIN);
+        let threads =
+            NonZeroUsize::new(cfg.session.resolved_threads()).unwrap_or(NonZeroUsize::MIN);
         let dim = {
             // Warm-up: one frame of the training mean colour (all zeros once normalised) through
             // the real run path; also gives the dimension
             // when the export leaves it symbolic.
             let px = vec![0f32; 3 * input_size.0 as usize * input_size.1 as usize];
             let mut dummies_vals = Vec::new();
-            let out = run(&mut session, &pixel_input, &px, 1, input_size, &dummies, &mut dummies_vals)?;
+            let out = run(
+                &mut session,
+                &pixel_input,
+                &px,
+                1,
+                input_size,
+                &dummies,
+                &mut dummies_vals,
+            )?;
             out.len()
         };
         if dim == 0 {
@@ -323,7 +335,8 @@ fn run(
     scratch: &mut Vec<Tensor<i64>>,
 ) -> Result<Vec<f32>, ModelError> {
     let run_err = |e: vlmfuse_ort::ort::Error| ModelError::Onnx(OrtError::Run(e.to_string()));
-    let image = TensorRef::from_array_view(([n, 3, h as usize, w as usize], pixels)).map_err(run_err)?;
+    let image =
+        TensorRef::from_array_view(([n, 3, h as usize, w as usize], pixels)).map_err(run_err)?;
     scratch.clear();
     for d in dummies {
         scratch.push(Tensor::from_array(([1usize, 1], vec![d.value])).map_err(run_err)?);
@@ -417,7 +430,10 @@ mod tests {
         // mean (2, 2) → (1/√2, 1/√2)
         assert!((v[0] - std::f32::consts::FRAC_1_SQRT_2).abs() < 1e-7);
         assert!((v[1] - std::f32::consts::FRAC_1_SQRT_2).abs() < 1e-7);
-        assert_eq!(mean_unit(&[vec![0.0, 0.0]]).unwrap_err().kind(), "invalid_input");
+        assert_eq!(
+            mean_unit(&[vec![0.0, 0.0]]).unwrap_err().kind(),
+            "invalid_input"
+        );
     }
 
     #[test]
