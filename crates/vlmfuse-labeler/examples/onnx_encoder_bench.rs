@@ -146,6 +146,13 @@ fn main() {
         ..OnnxEncoderConfig::new(&assets.minilm_onnx_dir)
     })
     .expect("load the ONNX encoder");
+    let lens: Vec<usize> = ort.token_ids(&texts).unwrap().iter().map(Vec::len).collect();
+    let longest = lens.iter().copied().max().unwrap_or(0);
+    println!(
+        "tokens: {} in all, longest clause {longest}, {} once padded to it",
+        lens.iter().sum::<usize>(),
+        longest * lens.len()
+    );
     let (ort_ms, ort_cores, a) = time(reps, || ort.encode(&texts).unwrap());
     println!("encoder, onnx   : median {ort_ms:6.1} ms, {ort_cores:.2} cores busy");
 
