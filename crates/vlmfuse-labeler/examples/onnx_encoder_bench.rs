@@ -146,7 +146,12 @@ fn main() {
         ..OnnxEncoderConfig::new(&assets.minilm_onnx_dir)
     })
     .expect("load the ONNX encoder");
-    let lens: Vec<usize> = ort.token_ids(&texts).unwrap().iter().map(Vec::len).collect();
+    let lens: Vec<usize> = ort
+        .token_ids(&texts)
+        .unwrap()
+        .iter()
+        .map(Vec::len)
+        .collect();
     let longest = lens.iter().copied().max().unwrap_or(0);
     println!(
         "tokens: {} in all, longest clause {longest}, {} once padded to it",
