@@ -13,6 +13,11 @@ pub struct AssetPaths {
     pub minilm_dir: PathBuf,
     /// The assembled gemma-3-270m Q4_K_M GGUF.
     pub gemma_gguf: PathBuf,
+    /// all-MiniLM-L6-v2 for ONNX Runtime: `model.onnx` (the committed graph) beside hard links
+    /// of the files in `minilm_dir`, whose `model.safetensors` it reads.
+    pub minilm_onnx_dir: PathBuf,
+    /// `libonnxruntime.so.1.31.1` from the `onnxruntime` wheel.
+    pub onnxruntime: PathBuf,
 }
 
 impl AssetPaths {
@@ -21,13 +26,14 @@ impl AssetPaths {
         AssetPaths {
             minilm_dir: root.join("minilm"),
             gemma_gguf: root.join("gemma-3-270m-q4_k_m.gguf"),
+            minilm_onnx_dir: root.join("minilm-onnx"),
+            onnxruntime: root.join("onnxruntime").join(vlmfuse_ort::LIBRARY_FILE),
             root: root.to_path_buf(),
         }
     }
 
-    /// Under the fetch script's default root, `$HOME/.cache/vlmfuse-assets`.
+    /// Under the fetch script's root: `$VLMFUSE_ASSETS`, else `$HOME/.cache/vlmfuse-assets`.
     pub fn default_cache() -> Self {
-        let home = std::env::var_os("HOME").unwrap_or_else(|| ".".into());
-        Self::under(&Path::new(&home).join(".cache").join("vlmfuse-assets"))
+        Self::under(&vlmfuse_ort::assets_root())
     }
 }

@@ -13,6 +13,7 @@
 pub mod assets;
 mod embedding;
 mod encoder;
+mod encoder_onnx;
 mod error;
 mod gguf;
 mod negation;
@@ -21,6 +22,7 @@ mod sp_tokenizer;
 
 pub use embedding::{ClauseSims, EmbeddingConfig, EmbeddingLabeler};
 pub use encoder::SentenceEncoder;
+pub use encoder_onnx::{OnnxEncoderConfig, OnnxSentenceEncoder, ENCODER_MODEL_CANDIDATES};
 pub use error::{LabelerError, LabelerErrorKind};
 pub use gguf::{GgufConfig, GgufLabeler};
 pub use negation::{is_negated, split_clauses};

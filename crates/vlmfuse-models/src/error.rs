@@ -38,6 +38,10 @@ pub enum ModelError {
     #[error("candle: {0}")]
     Candle(#[from] candle_core::Error),
 
+    /// ONNX Runtime: its library, a model file, or a forward pass (the ONNX backends).
+    #[error(transparent)]
+    Onnx(#[from] vlmfuse_ort::OrtError),
+
     /// Local I/O (reading a clip to upload, a config file).
     #[error("i/o on {path}: {source}")]
     Io {
@@ -87,6 +91,7 @@ impl ModelError {
             ModelError::Device(_) => "device",
             ModelError::InvalidInput(_) => "invalid_input",
             ModelError::Candle(_) => "candle",
+            ModelError::Onnx(e) => e.kind(),
             ModelError::Io { .. } => "io",
             ModelError::Chat(ChatError::Remote { .. }) => "remote",
             ModelError::Chat(ChatError::Timeout { .. }) => "timeout",

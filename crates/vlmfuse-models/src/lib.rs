@@ -12,7 +12,7 @@ pub mod reporter;
 pub mod weights;
 
 pub use device::parse_device;
-pub use embed::{ClipEmbedder, ContextEmbedder, Embedder};
+pub use embed::{ClipEmbedder, ContextEmbedder, Embedder, OnnxClipConfig, OnnxClipEmbedder};
 pub use error::ModelError;
 pub use reporter::{
     run_all, CandleVlmConfig, CandleVlmReporter, ClipInput, ClipMeta, LocalReporter,

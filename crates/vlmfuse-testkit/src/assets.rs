@@ -45,6 +45,10 @@ fn present(p: &AssetPaths) -> bool {
         .iter()
         .all(|f| p.minilm_dir.join(f).is_file())
         && p.gemma_gguf.is_file()
+        && ["model.onnx", "model.safetensors", "tokenizer.json"]
+            .iter()
+            .all(|f| p.minilm_onnx_dir.join(f).is_file())
+        && p.onnxruntime.is_file()
 }
 
 /// The fetch script in this source tree (this crate is never used outside it).
