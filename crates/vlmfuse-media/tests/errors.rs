@@ -52,7 +52,7 @@ fn random_bytes_are_not_video() {
         std::fs::write(&p, noise(len, 0x9E37_79B9_7F4A_7C15 + i as u64)).unwrap();
         let e = both_fail(&p);
         assert!(matches!(e, MediaError::NotVideo), "{len} bytes: {e:?}");
-        assert_eq!(e.suggested_http_status(), 415);
+        assert_eq!(e.kind(), "not_video");
     }
     let text = dir.path().join("notes.txt");
     std::fs::write(&text, "this is a plain text file, not a clip\n".repeat(50)).unwrap();
@@ -174,7 +174,7 @@ fn unknown_codec_is_unsupported() {
     std::fs::write(&p, &bytes).unwrap();
     let e = both_fail(&p);
     assert!(matches!(e, MediaError::UnsupportedCodec(_)), "{e:?}");
-    assert_eq!(e.suggested_http_status(), 415);
+    assert_eq!(e.kind(), "unsupported_codec");
 }
 
 #[test]
@@ -193,7 +193,7 @@ fn limits_are_enforced_before_decoding() {
         matches!(e, MediaError::TooLarge { bytes, max_bytes } if bytes == size && max_bytes == size - 1),
         "{e:?}"
     );
-    assert_eq!(e.suggested_http_status(), 413);
+    assert_eq!(e.kind(), "too_large");
     let exact = MediaLimits {
         max_bytes: size,
         ..MediaLimits::default()
@@ -274,7 +274,7 @@ fn invalid_options_and_missing_files() {
     let e = sample(&dir.path().join("missing.mp4")).unwrap_err();
     assert!(matches!(e, MediaError::Io(_)), "{e:?}");
     assert!(!e.is_client_error());
-    assert_eq!(e.suggested_http_status(), 500);
+    assert_eq!(e.kind(), "io");
     let e = sample(dir.path()).unwrap_err();
     assert!(matches!(e, MediaError::Io(_)), "{e:?}");
 }

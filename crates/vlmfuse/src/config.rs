@@ -111,6 +111,9 @@ impl MediaConfig {
             max_duration_s: self.max_duration_s,
             max_width: self.max_width,
             max_height: self.max_height,
+            // max_frames_decoded and decode_threads: the media crate's defaults until the
+            // service config grows fields for them (issue 10, phase 2).
+            ..vlmfuse_media::MediaLimits::default()
         }
     }
 

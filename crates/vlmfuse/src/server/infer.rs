@@ -103,13 +103,29 @@ impl From<MultipartError> for ApiError {
 }
 
 impl From<MediaError> for ApiError {
+    /// The HTTP status of each media failure, chosen here at the edge (the media crate only
+    /// classifies): 413 over a size limit, 415 for what is not an accepted video, 422 for a
+    /// video that breaks a limit or is damaged, 503 when the decode was stopped by the
+    /// request's deadline or cancellation.
     fn from(e: MediaError) -> Self {
-        if !e.is_client_error() {
-            return ApiError::Internal(format!("media: {e}"));
-        }
+        let status = match &e {
+            MediaError::Io(_) | MediaError::Internal(_) => {
+                return ApiError::Internal(format!("media: {e}"))
+            }
+            MediaError::TooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
+            MediaError::NotVideo
+            | MediaError::UnsupportedContainer(_)
+            | MediaError::UnsupportedCodec(_) => StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            MediaError::Empty | MediaError::InvalidOptions(_) => StatusCode::BAD_REQUEST,
+            MediaError::NoVideoStream
+            | MediaError::Corrupt(_)
+            | MediaError::TooLong { .. }
+            | MediaError::ResolutionTooHigh { .. }
+            | MediaError::TooManyFrames { .. } => StatusCode::UNPROCESSABLE_ENTITY,
+            MediaError::Cancelled | MediaError::DeadlineExceeded => StatusCode::SERVICE_UNAVAILABLE,
+        };
         ApiError::Body {
-            status: StatusCode::from_u16(e.suggested_http_status())
-                .unwrap_or(StatusCode::UNPROCESSABLE_ENTITY),
+            status,
             kind: e.kind(),
             message: e.to_string(),
         }
