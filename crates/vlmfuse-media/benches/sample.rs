@@ -175,4 +175,39 @@ fn main() {
             println!("{label:<19} (max mean |ours - CLI| per frame: {worst:.2} / 255)");
         }
     }
+
+    // FFmpeg's frame threads against one thread per clip (`MediaLimits::decode_threads`), on
+    // the paper's clip shape, at the native size and at the service's default short side.
+    let (_, g30, _) = &clips[0];
+    println!(
+        "\n{:<26} {:>3} {:>9} {:>9}",
+        "decode_threads (kf 1 s)", "N", "native", "short 448"
+    );
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let mut base = None;
+    for threads in [1usize, 2, 4, 0] {
+        let limits = MediaLimits {
+            decode_threads: threads,
+            ..MediaLimits::default()
+        };
+        let ms = |size| {
+            let opts = SampleOptions { frames: 8, size };
+            let (d, _) = time(|| {
+                sample_frames_with_policy(g30, &opts, &limits, DecodePolicy::Auto)
+                    .expect("sampling")
+            });
+            d.as_secs_f64() * 1e3
+        };
+        let (native, short) = (ms(FrameSize::Native), ms(FrameSize::ShortSide(448)));
+        let b = *base.get_or_insert(native);
+        let name = match threads {
+            0 => format!("0 (auto: {} here)", cores.min(8)),
+            n => n.to_string(),
+        };
+        println!(
+            "{name:<26} {:>3} {native:>9.1} {short:>9.1}   ({:.2}x of 1 thread)",
+            8,
+            native / b
+        );
+    }
 }

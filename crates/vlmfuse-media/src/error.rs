@@ -5,6 +5,8 @@
 //! user *what* is wrong without parsing messages ([`MediaError::kind`]), and
 //! [`MediaError::class`] groups them by what the caller can do about it. This crate speaks no
 //! HTTP: the service maps classes to statuses in its one error-mapping place.
+//! [`MediaError::is_interrupted`] marks the decodes that the caller's deadline or cancellation
+//! stopped.
 
 use thiserror::Error;
 
@@ -22,6 +24,8 @@ pub enum MediaErrorClass {
     Rejected,
     /// The server's side (disk, FFmpeg internals): the upload may be fine.
     Internal,
+    /// The caller's deadline passed or it cancelled: the upload may be fine; try again later.
+    Interrupted,
 }
 
 /// Why a clip could not be probed or sampled.
@@ -34,6 +38,12 @@ pub enum MediaError {
     /// No demuxer recognises the bytes: the upload is not a media container at all.
     #[error("the file is not a video (no known container format)")]
     NotVideo,
+    /// The bytes are a format FFmpeg knows but uploads may not use: only mp4/mov,
+    /// matroska/webm, avi and mpegts open. Playlists (HLS, ffconcat) name other files, which
+    /// would make the server read its own disk; the other demuxers are attack surface nobody's
+    /// dashcam needs. Holds FFmpeg's name of what the bytes are.
+    #[error("the {0} format is not accepted; send mp4, mov, mkv, webm, avi or mpeg-ts")]
+    UnsupportedContainer(String),
     /// A real media file without a decodable picture track (audio-only, subtitles, a
     /// still cover image).
     #[error("the file has no video stream")]
@@ -53,8 +63,9 @@ pub enum MediaError {
         duration_s: f64,
         max_duration_s: f64,
     },
-    /// Rejected from the header, before decoding: decoding cost and memory grow with the
-    /// pixel count.
+    /// Rejected from the header before decoding, and checked again on every decoded frame
+    /// (a stream may change resolution midway): decoding cost and memory grow with the pixel
+    /// count.
     #[error("the clip is {width}x{height}, more than the limit of {max_width}x{max_height}")]
     ResolutionTooHigh {
         width: u32,
@@ -62,6 +73,15 @@ pub enum MediaError {
         max_width: u32,
         max_height: u32,
     },
+    /// Sampling would decode more frames than [`crate::MediaLimits::max_frames_decoded`]: a
+    /// very high frame rate with few keyframes (999 fps and one keyframe is ~100k decodes).
+    /// Either predicted from the container's keyframe index before decoding, or reached while
+    /// decoding; `frames` is then a lower bound of what the clip would have needed.
+    #[error(
+        "sampling this clip needs at least {frames} decoded frames, more than the limit of \
+         {max_frames} (a very high frame rate with few keyframes)"
+    )]
+    TooManyFrames { frames: u64, max_frames: u64 },
     /// The request asked for something impossible (zero frames, a zero-sized output, ...).
     #[error("invalid sampling options: {0}")]
     InvalidOptions(String),
@@ -72,25 +92,45 @@ pub enum MediaError {
     /// FFmpeg failed in a way that says nothing about the input (allocation, scaler setup).
     #[error("internal media error: {0}")]
     Internal(String),
+    /// The caller cancelled the [`crate::Interrupt`] (the request was abandoned); decoding
+    /// stopped at the next packet or read.
+    #[error("decoding was cancelled")]
+    Cancelled,
+    /// The [`crate::Interrupt`]'s deadline passed before the clip was sampled.
+    #[error("decoding did not finish before its deadline")]
+    DeadlineExceeded,
 }
 
 impl MediaError {
     /// Whether the request (the uploaded file or the options) is at fault rather than the
-    /// server.
+    /// server. Interrupted decodes are not: the upload may be fine, the caller stopped waiting.
     pub fn is_client_error(&self) -> bool {
-        self.class() != MediaErrorClass::Internal
+        !matches!(
+            self.class(),
+            MediaErrorClass::Internal | MediaErrorClass::Interrupted
+        )
+    }
+
+    /// Whether the caller's [`crate::Interrupt`] stopped the decode (cancelled or past its
+    /// deadline), as opposed to anything about the clip.
+    pub fn is_interrupted(&self) -> bool {
+        self.class() == MediaErrorClass::Interrupted
     }
 
     pub fn class(&self) -> MediaErrorClass {
         match self {
             MediaError::TooLarge { .. } => MediaErrorClass::Oversized,
-            MediaError::NotVideo | MediaError::UnsupportedCodec(_) => MediaErrorClass::Unsupported,
+            MediaError::NotVideo
+            | MediaError::UnsupportedContainer(_)
+            | MediaError::UnsupportedCodec(_) => MediaErrorClass::Unsupported,
             MediaError::Empty | MediaError::InvalidOptions(_) => MediaErrorClass::Malformed,
             MediaError::NoVideoStream
             | MediaError::Corrupt(_)
             | MediaError::TooLong { .. }
-            | MediaError::ResolutionTooHigh { .. } => MediaErrorClass::Rejected,
+            | MediaError::ResolutionTooHigh { .. }
+            | MediaError::TooManyFrames { .. } => MediaErrorClass::Rejected,
             MediaError::Io(_) | MediaError::Internal(_) => MediaErrorClass::Internal,
+            MediaError::Cancelled | MediaError::DeadlineExceeded => MediaErrorClass::Interrupted,
         }
     }
 
@@ -100,15 +140,19 @@ impl MediaError {
         match self {
             MediaError::Empty => "empty",
             MediaError::NotVideo => "not_video",
+            MediaError::UnsupportedContainer(_) => "unsupported_container",
             MediaError::NoVideoStream => "no_video_stream",
             MediaError::UnsupportedCodec(_) => "unsupported_codec",
             MediaError::Corrupt(_) => "corrupt",
             MediaError::TooLarge { .. } => "too_large",
             MediaError::TooLong { .. } => "too_long",
             MediaError::ResolutionTooHigh { .. } => "resolution_too_high",
+            MediaError::TooManyFrames { .. } => "too_many_frames",
             MediaError::InvalidOptions(_) => "invalid_options",
             MediaError::Io(_) => "io",
             MediaError::Internal(_) => "internal",
+            MediaError::Cancelled => "cancelled",
+            MediaError::DeadlineExceeded => "deadline_exceeded",
         }
     }
 }

@@ -54,6 +54,7 @@ fn random_bytes_are_not_video() {
         let e = both_fail(&p);
         assert!(matches!(e, MediaError::NotVideo), "{len} bytes: {e:?}");
         assert_eq!(e.class(), MediaErrorClass::Unsupported);
+        assert_eq!(e.kind(), "not_video");
     }
     let text = dir.path().join("notes.txt");
     std::fs::write(&text, "this is a plain text file, not a clip\n".repeat(50)).unwrap();
@@ -176,6 +177,7 @@ fn unknown_codec_is_unsupported() {
     let e = both_fail(&p);
     assert!(matches!(e, MediaError::UnsupportedCodec(_)), "{e:?}");
     assert_eq!(e.class(), MediaErrorClass::Unsupported);
+    assert_eq!(e.kind(), "unsupported_codec");
 }
 
 #[test]
@@ -195,6 +197,7 @@ fn limits_are_enforced_before_decoding() {
         "{e:?}"
     );
     assert_eq!(e.class(), MediaErrorClass::Oversized);
+    assert_eq!(e.kind(), "too_large");
     let exact = MediaLimits {
         max_bytes: size,
         ..MediaLimits::default()
@@ -276,6 +279,7 @@ fn invalid_options_and_missing_files() {
     assert!(matches!(e, MediaError::Io(_)), "{e:?}");
     assert!(!e.is_client_error());
     assert_eq!(e.class(), MediaErrorClass::Internal);
+    assert_eq!(e.kind(), "io");
     let e = sample(dir.path()).unwrap_err();
     assert!(matches!(e, MediaError::Io(_)), "{e:?}");
 }

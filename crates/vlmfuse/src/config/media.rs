@@ -61,6 +61,24 @@ pub struct MediaConfig {
         required = false
     )]
     pub max_height: u32,
+    /// Most frames decoded for one clip (decode work, which the byte size does not bound: a
+    /// 1 MB clip at 999 fps with one keyframe needs ~100k decodes); 422 above.
+    #[arg(
+        long = "media-max-frames-decoded",
+        id = "media-max-frames-decoded",
+        env = "VLMFUSE_MEDIA_MAX_FRAMES_DECODED",
+        required = false
+    )]
+    pub max_frames_decoded: u64,
+    /// FFmpeg decoder threads per clip; 0: one per core (at most 8). 1 is fastest for sampling
+    /// (short runs between seeks) while several clips decode at once.
+    #[arg(
+        long = "media-decode-threads",
+        id = "media-decode-threads",
+        env = "VLMFUSE_MEDIA_DECODE_THREADS",
+        required = false
+    )]
+    pub decode_threads: usize,
     /// Seconds one /v1/infer request may take (replaces limits.request_timeout_s there).
     #[arg(
         long = "media-request-timeout-s",
@@ -91,6 +109,8 @@ impl Default for MediaConfig {
             max_duration_s: l.max_duration_s,
             max_width: l.max_width,
             max_height: l.max_height,
+            max_frames_decoded: l.max_frames_decoded,
+            decode_threads: l.decode_threads,
             request_timeout_s: 300.0,
             temp_dir: None,
         }
@@ -104,6 +124,8 @@ impl MediaConfig {
             max_duration_s: self.max_duration_s,
             max_width: self.max_width,
             max_height: self.max_height,
+            max_frames_decoded: self.max_frames_decoded,
+            decode_threads: self.decode_threads,
         }
     }
 

@@ -64,6 +64,7 @@ pub fn media_status(class: MediaErrorClass) -> StatusCode {
         MediaErrorClass::Malformed => StatusCode::BAD_REQUEST,
         MediaErrorClass::Rejected => StatusCode::UNPROCESSABLE_ENTITY,
         MediaErrorClass::Internal => StatusCode::INTERNAL_SERVER_ERROR,
+        MediaErrorClass::Interrupted => StatusCode::SERVICE_UNAVAILABLE,
     }
 }
 

@@ -7,7 +7,7 @@ use crate::wire::{ClipOut, InferClipOut, Ordered, ReporterOut};
 use serde_json::{json, Value};
 use std::collections::BTreeMap;
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 use vlmfuse_fusion::RoundRecord;
 use vlmfuse_models::{ClipInput, ClipMeta};
 
@@ -109,8 +109,16 @@ impl Service {
         let path = up.file.path().to_path_buf();
         let (opts, limits) = (media.sample_options(), media.limits());
         let decode_path = path.clone();
+        // The decode stops at the request's deadline, and as soon as this future is dropped
+        // (client gone, request timeout): the guard cancels it, so no thread keeps decoding for
+        // an abandoned request.
+        let interrupt = match Duration::try_from_secs_f64(media.request_timeout_s) {
+            Ok(timeout) => vlmfuse_media::Interrupt::with_timeout(timeout),
+            Err(_) => vlmfuse_media::Interrupt::new(),
+        };
+        let _stop_on_drop = interrupt.cancel_on_drop();
         let decoded = tokio::task::spawn_blocking(move || {
-            vlmfuse_media::sample_frames(&decode_path, &opts, &limits)
+            vlmfuse_media::sample_frames_with_interrupt(&decode_path, &opts, &limits, &interrupt)
         })
         .await
         .map_err(|e| ServiceError::Internal(format!("decoding task failed: {e}")))??;

@@ -105,7 +105,25 @@ async fn clips_are_decoded_embedded_fused_and_stored_and_bad_media_is_refused() 
         &tmp.path().join("tone.wav"),
     );
     let big = vec![0u8; 1_500_000];
+    // Playlists naming a clip on the server's disk: refused, nothing read (issue 10).
+    let hls = format!(
+        "#EXTM3U\n#EXT-X-TARGETDURATION:2\n#EXTINF:2,\nfile:{}\n#EXT-X-ENDLIST\n",
+        b.display()
+    );
+    let concat = format!("ffconcat version 1.0\nfile '{}'\n", b.display());
     let cases: Vec<(&str, Vec<u8>, u16, &str)> = vec![
+        (
+            "hls playlist",
+            multipart(&[("video", "list.m3u8", hls.as_bytes())]),
+            415,
+            "unsupported_container",
+        ),
+        (
+            "ffconcat",
+            multipart(&[("video", "list.ffconcat", concat.as_bytes())]),
+            415,
+            "unsupported_container",
+        ),
         (
             "zero bytes",
             multipart(&[("video", "e.mp4", b"")]),
