@@ -23,7 +23,7 @@ if ! "$venv/bin/st" --version >/dev/null 2>&1; then
     "$venv/bin/pip" install --quiet "schemathesis==$version"
 fi
 
-bin="${1:-$root/target/debug/vlmfuse}"
+bin="${1:-${CARGO_TARGET_DIR:-$root/target}/debug/vlmfuse}"
 if [ ! -x "$bin" ]; then
     (cd "$root" && cargo build -p vlmfuse)
 fi

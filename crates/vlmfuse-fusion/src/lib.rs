@@ -4,7 +4,6 @@
 
 pub mod adaptive;
 pub mod bank;
-pub mod bench;
 pub mod config;
 pub mod corr;
 pub mod curve;

@@ -9,12 +9,12 @@
 //! The remote (OpenAI-compatible) labeler is not evaluated: there is no real server here.
 
 use std::time::Instant;
-use vlmfuse_labeler::assets::{ensure_assets, AssetsUnavailable};
-use vlmfuse_labeler::eval::{
-    default_dataset_path, f1_scores, load_dataset, to_mask, tune_thresholds,
-};
 use vlmfuse_labeler::{
-    EmbeddingConfig, EmbeddingLabeler, GgufConfig, GgufLabeler, LabelerError, Ontology,
+    BlockingLabeler, EmbeddingConfig, EmbeddingLabeler, GgufConfig, GgufLabeler, Ontology,
+};
+use vlmfuse_testkit::assets::{ensure_assets, AssetsUnavailable};
+use vlmfuse_testkit::labeler_eval::{
+    default_dataset_path, f1_scores, load_dataset, to_mask, tune_thresholds, Example,
 };
 
 fn arg_value(args: &[String], name: &str) -> Option<String> {
@@ -47,7 +47,7 @@ fn per_label(ontology: &Ontology, truth: &[Vec<bool>], pred: &[Vec<bool>]) {
     }
 }
 
-fn main() -> Result<(), LabelerError> {
+fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let tune = args.iter().any(|a| a == "--tune");
     let only = arg_value(&args, "--only");
@@ -61,13 +61,16 @@ fn main() -> Result<(), LabelerError> {
             eprintln!("skipping evaluation: assets cannot be fetched: {r}");
             return Ok(());
         }
-        Err(e) => return Err(LabelerError::AssetMissing(e.to_string())),
+        Err(e) => anyhow::bail!("{e}"),
     };
     let ontology = Ontology::default_driving();
     let data = load_dataset(&default_dataset_path())?;
     let (train, test): (Vec<_>, Vec<_>) = data.iter().partition(|e| e.split == "train");
-    let truth = |xs: &[&vlmfuse_labeler::eval::Example]| -> Result<Vec<Vec<bool>>, LabelerError> {
-        xs.iter().map(|e| to_mask(&ontology, &e.labels)).collect()
+    let truth = |xs: &[&Example]| -> anyhow::Result<Vec<Vec<bool>>> {
+        Ok(xs
+            .iter()
+            .map(|e| to_mask(&ontology, &e.labels))
+            .collect::<Result<_, _>>()?)
     };
     let (train_y, test_y) = (truth(&train)?, truth(&test)?);
     println!(

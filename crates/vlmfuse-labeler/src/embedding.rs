@@ -7,14 +7,12 @@
 //! means "keep a safe distance") still counts, while "no need to brake" does not count as "brake".
 
 use crate::negation::{is_negated, split_clauses};
-use crate::{Labeler, LabelerError, LabelerOutput, Ontology};
+use crate::{BlockingLabeler, LabelerError, LabelerOutput, Ontology};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use candle_transformers::models::bert::{BertModel, Config as BertConfig};
-use futures::future::BoxFuture;
 use std::collections::HashMap;
 use std::path::PathBuf;
-use std::sync::Arc;
 use tokenizers::{PaddingParams, Tokenizer, TruncationParams};
 
 /// Paraphrases per default label. Written from how people and VLMs phrase driving advice, not
@@ -327,7 +325,7 @@ impl ClauseSims {
 
 pub struct EmbeddingLabeler {
     name: String,
-    inner: Arc<Inner>,
+    inner: Inner,
 }
 
 impl EmbeddingLabeler {
@@ -440,7 +438,7 @@ impl EmbeddingLabeler {
         inner.proto_emb = inner.embed(&texts)?;
         Ok(Self {
             name: "embedding:all-MiniLM-L6-v2".into(),
-            inner: Arc::new(inner),
+            inner,
         })
     }
 
@@ -451,11 +449,6 @@ impl EmbeddingLabeler {
     /// Clause-level similarities of a text (blocking).
     pub fn clause_sims(&self, text: &str) -> Result<ClauseSims, LabelerError> {
         self.inner.clause_sims(text)
-    }
-
-    /// Labels a text on the calling thread, for batch evaluation without a runtime.
-    pub fn label_blocking(&self, text: &str) -> Result<LabelerOutput, LabelerError> {
-        self.inner.label(text)
     }
 }
 
@@ -537,14 +530,12 @@ impl Inner {
     }
 }
 
-impl Labeler for EmbeddingLabeler {
+impl BlockingLabeler for EmbeddingLabeler {
     fn name(&self) -> &str {
         &self.name
     }
 
-    fn label<'a>(&'a self, text: &'a str) -> BoxFuture<'a, Result<LabelerOutput, LabelerError>> {
-        let inner = self.inner.clone();
-        let text = text.to_string();
-        Box::pin(async move { tokio::task::spawn_blocking(move || inner.label(&text)).await? })
+    fn label_blocking(&self, text: &str) -> Result<LabelerOutput, LabelerError> {
+        self.inner.label(text)
     }
 }

@@ -27,7 +27,7 @@ pub enum LabelerErrorKind {
 #[derive(Debug, thiserror::Error)]
 pub enum LabelerError {
     #[error("invalid ontology: {0}")]
-    Ontology(String),
+    Ontology(#[from] vlmfuse_core::OntologyError),
     #[error("invalid labeler config: {0}")]
     Config(String),
     #[error("asset not found: {0} (run scripts/fetch-assets.sh)")]
@@ -36,8 +36,14 @@ pub enum LabelerError {
     Model(String),
     #[error("tokenizer error: {0}")]
     Tokenizer(String),
+    /// The remote chat server failed (after the shared client's retries).
     #[error("http error: {0}")]
-    Http(String),
+    Chat(#[from] vlmfuse_core::ChatError),
+    #[error("model error: {0}")]
+    Candle(#[from] candle_core::Error),
+    /// The labeler's worker refused or lost the call (queue full, stopped, panicked).
+    #[error("labeler worker failed: {0}")]
+    Backend(#[from] vlmfuse_core::BackendError),
     #[error("bad answer from labeler {labeler} after {attempts} attempt(s): {reason}")]
     BadAnswer {
         labeler: String,
@@ -58,22 +64,12 @@ impl LabelerError {
             LabelerError::AssetMissing(_) => LabelerErrorKind::AssetMissing,
             LabelerError::Model(_) => LabelerErrorKind::Model,
             LabelerError::Tokenizer(_) => LabelerErrorKind::Tokenizer,
-            LabelerError::Http(_) => LabelerErrorKind::Http,
+            LabelerError::Chat(_) => LabelerErrorKind::Http,
+            LabelerError::Candle(_) => LabelerErrorKind::Model,
+            LabelerError::Backend(_) => LabelerErrorKind::Internal,
             LabelerError::BadAnswer { .. } => LabelerErrorKind::BadAnswer,
             LabelerError::Io(_) => LabelerErrorKind::Io,
             LabelerError::Internal(_) => LabelerErrorKind::Internal,
         }
-    }
-}
-
-impl From<candle_core::Error> for LabelerError {
-    fn from(e: candle_core::Error) -> Self {
-        LabelerError::Model(e.to_string())
-    }
-}
-
-impl From<tokio::task::JoinError> for LabelerError {
-    fn from(e: tokio::task::JoinError) -> Self {
-        LabelerError::Internal(format!("labeler worker failed: {e}"))
     }
 }

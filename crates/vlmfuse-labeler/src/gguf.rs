@@ -13,14 +13,12 @@
 //!   token attends to the whole cache. A test checks this path against a full forward pass.
 
 use crate::sp_tokenizer::SpTokenizer;
-use crate::{Labeler, LabelerError, LabelerOutput, Ontology};
+use crate::{BlockingLabeler, LabelerError, LabelerOutput, Ontology};
 use candle_core::quantized::gguf_file;
 use candle_core::{Device, Tensor};
 use candle_transformers::models::quantized_gemma3::ModelWeights;
-use futures::future::BoxFuture;
 use std::collections::HashMap;
 use std::path::PathBuf;
-use std::sync::Arc;
 
 #[derive(Debug, Clone)]
 pub struct GgufConfig {
@@ -71,7 +69,7 @@ struct Inner {
 
 pub struct GgufLabeler {
     name: String,
-    inner: Arc<Inner>,
+    inner: Inner,
 }
 
 fn log_sum_exp(xs: &[f32]) -> f32 {
@@ -96,9 +94,7 @@ impl GgufLabeler {
         }
         let device = Device::Cpu;
         let mut file = std::fs::File::open(&cfg.model_path)?;
-        let ct = gguf_file::Content::read(&mut file)
-            .map_err(|e| e.with_path(&cfg.model_path))
-            .map_err(|e| LabelerError::Model(e.to_string()))?;
+        let ct = gguf_file::Content::read(&mut file).map_err(|e| e.with_path(&cfg.model_path))?;
         let tok = SpTokenizer::from_gguf(&ct)?;
         let base = ModelWeights::from_gguf(ct, &mut file, &device)?;
         let ids = |pieces: &[&str]| -> Vec<u32> {
@@ -143,7 +139,7 @@ impl GgufLabeler {
         }
         Ok(Self {
             name: "gguf:gemma-3-270m".into(),
-            inner: Arc::new(inner),
+            inner,
         })
     }
 
@@ -159,11 +155,6 @@ impl GgufLabeler {
     /// forward pass per label; it exists to check the cached path and costs several times more.
     pub fn raw_log_odds(&self, text: &str, reuse_prefix: bool) -> Result<Vec<f32>, LabelerError> {
         self.inner.log_odds(text, reuse_prefix)
-    }
-
-    /// Labels a text on the calling thread.
-    pub fn label_blocking(&self, text: &str) -> Result<LabelerOutput, LabelerError> {
-        self.inner.label(text)
     }
 }
 
@@ -237,14 +228,12 @@ impl Inner {
     }
 }
 
-impl Labeler for GgufLabeler {
+impl BlockingLabeler for GgufLabeler {
     fn name(&self) -> &str {
         &self.name
     }
 
-    fn label<'a>(&'a self, text: &'a str) -> BoxFuture<'a, Result<LabelerOutput, LabelerError>> {
-        let inner = self.inner.clone();
-        let text = text.to_string();
-        Box::pin(async move { tokio::task::spawn_blocking(move || inner.label(&text)).await? })
+    fn label_blocking(&self, text: &str) -> Result<LabelerOutput, LabelerError> {
+        self.inner.label(text)
     }
 }

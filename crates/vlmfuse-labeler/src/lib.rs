@@ -13,22 +13,23 @@
 pub mod assets;
 mod embedding;
 mod encoder;
+mod encoder_onnx;
 mod error;
-pub mod eval;
 mod gguf;
 mod negation;
-mod ontology;
 mod openai;
 mod sp_tokenizer;
 
 pub use embedding::{ClauseSims, EmbeddingConfig, EmbeddingLabeler};
 pub use encoder::SentenceEncoder;
+pub use encoder_onnx::{OnnxEncoderConfig, OnnxSentenceEncoder, ENCODER_MODEL_CANDIDATES};
 pub use error::{LabelerError, LabelerErrorKind};
 pub use gguf::{GgufConfig, GgufLabeler};
 pub use negation::{is_negated, split_clauses};
-pub use ontology::{LabelDef, Ontology};
 pub use openai::{OpenAiConfig, OpenAiLabeler};
 pub use sp_tokenizer::SpTokenizer;
+pub use vlmfuse_core::{BackendPool, PoolConfig};
+pub use vlmfuse_core::{Label, Ontology, OntologyError};
 
 use futures::future::BoxFuture;
 use serde::{Deserialize, Serialize};
@@ -84,12 +85,34 @@ impl LabelerOutput {
     }
 }
 
-/// A backend that turns one VLM answer into labels.
+/// A backend that turns one VLM answer into labels, as the service calls it.
 ///
-/// Async because the remote backend waits on the network and the local ones must not block the
-/// runtime: they run their model work on `spawn_blocking`.
+/// Async because the remote backend waits on the network. Local backends implement
+/// [`BlockingLabeler`] instead and get this trait from the one adapter,
+/// [`BackendPool`](vlmfuse_core::BackendPool): their own worker thread, a bounded queue, and
+/// cancellation when the caller gives up.
 pub trait Labeler: Send + Sync {
     /// Stable name for logs and metrics.
     fn name(&self) -> &str;
     fn label<'a>(&'a self, text: &'a str) -> BoxFuture<'a, Result<LabelerOutput, LabelerError>>;
+}
+
+/// A local labeler whose model work blocks the calling thread (the embedding and GGUF
+/// labelers). Batch tools call it directly; the service wraps it in a [`BackendPool`].
+pub trait BlockingLabeler: Send + Sync + 'static {
+    /// Stable name for logs and metrics.
+    fn name(&self) -> &str;
+    /// Labels a text on the calling thread.
+    fn label_blocking(&self, text: &str) -> Result<LabelerOutput, LabelerError>;
+}
+
+impl<B: BlockingLabeler + ?Sized> Labeler for BackendPool<B> {
+    fn name(&self) -> &str {
+        self.backend().name()
+    }
+
+    fn label<'a>(&'a self, text: &'a str) -> BoxFuture<'a, Result<LabelerOutput, LabelerError>> {
+        let text = text.to_string();
+        Box::pin(async move { self.call(move |b, _| b.label_blocking(&text)).await? })
+    }
 }

@@ -3,12 +3,16 @@
 //! An LLM's answer is untrusted: it may invent labels or wrap JSON in prose. The answer is parsed
 //! strictly against the ontology; a bad answer gets one corrective retry, then the labeler fails,
 //! so that the engine counts this reporter as absent rather than fusing garbage.
+//!
+//! The transport (retries on 5xx, 429, connection errors, with backoff) is the shared
+//! [`ChatClient`], the same one the remote reporter uses.
 
 use crate::{Labeler, LabelerError, LabelerOutput, Ontology};
 use futures::future::BoxFuture;
 use serde_json::{json, Value};
 use std::sync::Arc;
 use std::time::Duration;
+use vlmfuse_core::chat::{ChatClient, ChatError, RetryPolicy};
 
 #[derive(Debug, Clone)]
 pub struct OpenAiConfig {
@@ -18,10 +22,14 @@ pub struct OpenAiConfig {
     pub api_key: Option<String>,
     /// Ask for `response_format: {"type": "json_object"}`; turn off for servers that reject it.
     pub json_mode: bool,
+    /// Per HTTP attempt.
     pub timeout: Duration,
-    /// Total tries per text, counting bad answers and transient HTTP failures (5xx, connection).
-    /// Default 2: one retry.
+    /// Tries per text while the answer is not a valid label set; each retry tells the model what
+    /// was wrong. Default 2: one corrective retry.
     pub max_attempts: u32,
+    /// Transport retries (5xx, 429, connection errors, timeouts): the policy the remote reporters
+    /// use too. Default: one retry.
+    pub retry: RetryPolicy,
     pub temperature: f32,
 }
 
@@ -34,6 +42,10 @@ impl Default for OpenAiConfig {
             json_mode: true,
             timeout: Duration::from_secs(60),
             max_attempts: 2,
+            retry: RetryPolicy {
+                retries: 1,
+                ..RetryPolicy::default()
+            },
             temperature: 0.0,
         }
     }
@@ -43,7 +55,7 @@ pub struct OpenAiLabeler {
     name: String,
     cfg: OpenAiConfig,
     ontology: Arc<Ontology>,
-    client: reqwest::Client,
+    client: ChatClient,
 }
 
 impl OpenAiLabeler {
@@ -51,10 +63,7 @@ impl OpenAiLabeler {
         if cfg.max_attempts == 0 {
             return Err(LabelerError::Config("max_attempts must be >= 1".into()));
         }
-        let client = reqwest::Client::builder()
-            .timeout(cfg.timeout)
-            .build()
-            .map_err(|e| LabelerError::Http(e.to_string()))?;
+        let client = ChatClient::new(&cfg.base_url, cfg.api_key.clone(), cfg.timeout, cfg.retry);
         Ok(Self {
             name: format!("openai:{}", cfg.model),
             cfg,
@@ -83,10 +92,6 @@ impl OpenAiLabeler {
     }
 
     async fn call(&self, messages: &[Value]) -> Result<String, Attempt> {
-        let url = format!(
-            "{}/v1/chat/completions",
-            self.cfg.base_url.trim_end_matches('/')
-        );
         let mut body = json!({
             "model": self.cfg.model,
             "messages": messages,
@@ -95,32 +100,13 @@ impl OpenAiLabeler {
         if self.cfg.json_mode {
             body["response_format"] = json!({"type": "json_object"});
         }
-        let mut req = self.client.post(&url).json(&body);
-        if let Some(k) = &self.cfg.api_key {
-            req = req.bearer_auth(k);
+        match self.client.complete(&body).await {
+            Ok(reply) => Ok(reply.text),
+            // A well-formed HTTP exchange whose body is not an answer: worth another try.
+            Err(ChatError::BadResponse { message, .. }) => Err(Attempt::Bad(message)),
+            // The client has already retried what is worth retrying.
+            Err(e) => Err(Attempt::Fatal(e.into())),
         }
-        let resp = req
-            .send()
-            .await
-            .map_err(|e| Attempt::Transient(format!("POST {url}: {e}")))?;
-        let status = resp.status();
-        if !status.is_success() {
-            let text = resp.text().await.unwrap_or_default();
-            let msg = format!("POST {url}: HTTP {status}: {}", truncate(&text, 300));
-            return Err(if status.is_server_error() || status.as_u16() == 429 {
-                Attempt::Transient(msg)
-            } else {
-                Attempt::Fatal(LabelerError::Http(msg))
-            });
-        }
-        let v: Value = resp
-            .json()
-            .await
-            .map_err(|e| Attempt::Bad(format!("response is not JSON: {e}")))?;
-        v.pointer("/choices/0/message/content")
-            .and_then(Value::as_str)
-            .map(str::to_string)
-            .ok_or_else(|| Attempt::Bad("no choices[0].message.content in response".into()))
     }
 
     async fn label_async(&self, text: &str) -> Result<LabelerOutput, LabelerError> {
@@ -129,7 +115,6 @@ impl OpenAiLabeler {
             json!({"role": "user", "content": text}),
         ];
         let mut last = String::new();
-        let mut last_http: Option<String> = None;
         for attempt in 1..=self.cfg.max_attempts {
             match self.call(&messages).await {
                 Ok(content) => match parse_labels(&self.ontology, &content) {
@@ -147,42 +132,26 @@ impl OpenAiLabeler {
                              {{\"labels\": [...]}} using only the listed ids."
                         )}));
                         last = reason;
-                        last_http = None;
                     }
                 },
-                Err(Attempt::Bad(reason)) => {
-                    last = reason;
-                    last_http = None;
+                Err(Attempt::Bad(reason)) => last = reason,
+                Err(Attempt::Fatal(e)) => {
+                    tracing::warn!(labeler = %self.name, attempt, error = %e, "labeler request failed");
+                    return Err(e);
                 }
-                Err(Attempt::Transient(msg)) => {
-                    tracing::warn!(labeler = %self.name, attempt, %msg, "labeler request failed");
-                    last_http = Some(msg);
-                }
-                Err(Attempt::Fatal(e)) => return Err(e),
             }
         }
-        match last_http {
-            Some(msg) => Err(LabelerError::Http(msg)),
-            None => Err(LabelerError::BadAnswer {
-                labeler: self.name.clone(),
-                attempts: self.cfg.max_attempts,
-                reason: last,
-            }),
-        }
+        Err(LabelerError::BadAnswer {
+            labeler: self.name.clone(),
+            attempts: self.cfg.max_attempts,
+            reason: last,
+        })
     }
 }
 
 enum Attempt {
     Bad(String),
-    Transient(String),
     Fatal(LabelerError),
-}
-
-fn truncate(s: &str, n: usize) -> &str {
-    match s.char_indices().nth(n) {
-        Some((i, _)) => &s[..i],
-        None => s,
-    }
 }
 
 /// Strictly parses `{"labels": [...]}` (optionally inside a ```json fence, which many models add

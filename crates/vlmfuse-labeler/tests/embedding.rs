@@ -3,21 +3,24 @@
 
 mod common;
 
-use std::sync::OnceLock;
-use vlmfuse_labeler::eval::{default_dataset_path, f1_scores, load_dataset, to_mask};
-use vlmfuse_labeler::{EmbeddingConfig, EmbeddingLabeler, LabelDef, Labeler, Ontology};
+use std::sync::{Arc, OnceLock};
+use vlmfuse_labeler::{
+    BackendPool, BlockingLabeler, EmbeddingConfig, EmbeddingLabeler, Label, Labeler, Ontology,
+    PoolConfig,
+};
+use vlmfuse_testkit::labeler_eval::{default_dataset_path, f1_scores, load_dataset, to_mask};
 
-fn labeler() -> Option<&'static EmbeddingLabeler> {
-    static L: OnceLock<Option<EmbeddingLabeler>> = OnceLock::new();
+fn labeler() -> Option<&'static Arc<EmbeddingLabeler>> {
+    static L: OnceLock<Option<Arc<EmbeddingLabeler>>> = OnceLock::new();
     L.get_or_init(|| {
         let a = common::assets()?;
-        Some(
+        Some(Arc::new(
             EmbeddingLabeler::load(
                 Ontology::default_driving(),
                 EmbeddingConfig::new(&a.minilm_dir),
             )
             .expect("load embedding labeler"),
-        )
+        ))
     })
     .as_ref()
 }
@@ -108,7 +111,7 @@ fn outputs_cover_the_ontology_in_order() {
 async fn async_trait_path_matches_blocking() {
     let Some(l) = labeler() else { return };
     let text = "Reduce speed on the icy road, and keep a safe gap to the bus.";
-    let a = Labeler::label(l, text).await.unwrap();
+    let a = Labeler::label(&pooled(l), text).await.unwrap();
     assert_eq!(a, l.label_blocking(text).unwrap());
     assert!(
         a.labels.contains(&"maintain_safe_distance".to_string()),
@@ -120,13 +123,13 @@ async fn async_trait_path_matches_blocking() {
 fn custom_ontology_works_from_names_and_descriptions() {
     let Some(a) = common::assets() else { return };
     let onto = Ontology::new(vec![
-        LabelDef::new("cyclist", "cyclist", Some("a cyclist riding on the road")),
-        LabelDef::new(
+        Label::new("cyclist", "cyclist", Some("a cyclist riding on the road")),
+        Label::new(
             "roadworks",
             "roadworks",
             Some("road works and construction cones"),
         ),
-        LabelDef::new("animal", "animal", Some("an animal on the road")),
+        Label::new("animal", "animal", Some("an animal on the road")),
     ])
     .unwrap();
     // Names and descriptions alone are weak prototypes; configured paraphrases extend them.
@@ -152,7 +155,7 @@ fn custom_ontology_works_from_names_and_descriptions() {
     // Unknown label ids in the config are rejected rather than ignored.
     let mut cfg = EmbeddingConfig::new(&a.minilm_dir);
     cfg.label_thresholds.insert("nope".into(), 0.5);
-    let onto = Ontology::new(vec![LabelDef::new("x", "x", None)]).unwrap();
+    let onto = Ontology::new(vec![Label::new("x", "x", None)]).unwrap();
     assert!(EmbeddingLabeler::load(onto, cfg).is_err());
 }
 
@@ -180,4 +183,9 @@ fn test_split_micro_f1_floor() {
     );
     assert!(f.micro >= 0.80, "micro-F1 {:.3} below floor", f.micro);
     assert!(f.macro_ >= 0.78, "macro-F1 {:.3} below floor", f.macro_);
+}
+
+/// The labeler as the service runs it: behind its worker thread.
+fn pooled(l: &Arc<EmbeddingLabeler>) -> BackendPool<EmbeddingLabeler> {
+    BackendPool::new(l.name(), l.clone(), PoolConfig::default()).unwrap()
 }

@@ -4,28 +4,33 @@
 
 mod common;
 
-use std::sync::OnceLock;
-use vlmfuse_labeler::{GgufConfig, GgufLabeler, LabelDef, Labeler, Ontology, SpTokenizer};
+use std::sync::{Arc, OnceLock};
+use vlmfuse_labeler::{
+    BackendPool, BlockingLabeler, GgufConfig, GgufLabeler, Label, Labeler, Ontology, PoolConfig,
+    SpTokenizer,
+};
 
 /// One model load for all tests (a load costs about a minute in a debug build). A small custom
 /// ontology checks that other label sets work and keeps the full-forward comparison cheap; the
 /// default ontology is evaluated in release by `examples/labeler_eval.rs`.
-fn small() -> Option<&'static GgufLabeler> {
-    static L: OnceLock<Option<GgufLabeler>> = OnceLock::new();
+fn small() -> Option<&'static Arc<GgufLabeler>> {
+    static L: OnceLock<Option<Arc<GgufLabeler>>> = OnceLock::new();
     L.get_or_init(|| {
         let a = common::assets()?;
         let onto = Ontology::new(vec![
-            LabelDef::new(
+            Label::new(
                 "traffic_light_ahead",
                 "traffic light ahead",
                 Some("a traffic light"),
             ),
-            LabelDef::new("merge", "merge", Some("merging or changing lanes")),
-            LabelDef::new("cyclist", "cyclist", Some("a cyclist")),
-            LabelDef::new("snow", "snow", None),
+            Label::new("merge", "merge", Some("merging or changing lanes")),
+            Label::new("cyclist", "cyclist", Some("a cyclist")),
+            Label::new("snow", "snow", None),
         ])
         .unwrap();
-        Some(GgufLabeler::load(onto, GgufConfig::new(&a.gemma_gguf)).expect("load gguf labeler"))
+        Some(Arc::new(
+            GgufLabeler::load(onto, GgufConfig::new(&a.gemma_gguf)).expect("load gguf labeler"),
+        ))
     })
     .as_ref()
 }
@@ -85,7 +90,7 @@ fn cached_prefix_matches_full_forward() {
 async fn labels_answers_with_probabilities() {
     let Some(l) = small() else { return };
     let out = Labeler::label(
-        l,
+        &pooled(l),
         "1. Scene: A red traffic light at a busy intersection.\n2. Manoeuvre: Brake and stop at the line.\n3. Rationale: The light is red.",
     )
     .await
@@ -108,4 +113,9 @@ fn works_with_a_custom_ontology() {
     assert!(out.scores.iter().all(|s| (0.0..=1.0).contains(&s.score)));
     // No discrimination is asserted here: the 270M base model scored "snow" (0.77) above
     // "cyclist" (0.75) for a sunny cyclist scene; see the crate report.
+}
+
+/// The labeler as the service runs it: behind its worker thread.
+fn pooled(l: &Arc<GgufLabeler>) -> BackendPool<GgufLabeler> {
+    BackendPool::new(l.name(), l.clone(), PoolConfig::default()).unwrap()
 }

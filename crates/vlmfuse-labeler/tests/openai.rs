@@ -5,7 +5,8 @@ use axum::{extract::State, http::StatusCode, routing::post, Json, Router};
 use serde_json::{json, Value};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
-use vlmfuse_labeler::{LabelDef, Labeler, LabelerErrorKind, Ontology, OpenAiConfig, OpenAiLabeler};
+use vlmfuse_labeler::{Label, Labeler, LabelerErrorKind, Ontology, OpenAiConfig, OpenAiLabeler};
+use vlmfuse_testkit::server::serve_local;
 
 #[derive(Clone, Default)]
 struct Fake {
@@ -47,10 +48,7 @@ async fn start(replies: Vec<(u16, &str)>) -> (Fake, String) {
     let app = Router::new()
         .route("/v1/chat/completions", post(chat))
         .with_state(fake.clone());
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
-    tokio::spawn(async move { axum::serve(listener, app).await.unwrap() });
-    (fake, format!("http://{addr}"))
+    (fake, serve_local(app).await)
 }
 
 fn labeler(base_url: String, ontology: Ontology) -> OpenAiLabeler {
@@ -153,8 +151,8 @@ async fn server_errors_are_retried_then_reported_as_http() {
 #[tokio::test]
 async fn custom_ontology_is_enforced() {
     let onto = Ontology::new(vec![
-        LabelDef::new("cat", "cat", None),
-        LabelDef::new("dog", "dog", Some("a dog is visible")),
+        Label::new("cat", "cat", None),
+        Label::new("dog", "dog", Some("a dog is visible")),
     ])
     .unwrap();
     let (_f, url) = start(vec![(200, r#"{"labels": ["dog"]}"#)]).await;

@@ -5,7 +5,6 @@
 //! output: N native-size RGB24 frames, the first frame at or after each target time.
 
 use std::path::Path;
-use std::process::Command;
 use std::time::{Duration, Instant};
 
 use vlmfuse_media::{
@@ -13,20 +12,9 @@ use vlmfuse_media::{
     SampleOptions,
 };
 
-const REPEATS: usize = 3;
+use vlmfuse_testkit::clips::ffmpeg;
 
-fn ffmpeg(args: &[String]) {
-    let out = Command::new("ffmpeg")
-        .args(["-hide_banner", "-loglevel", "error", "-nostdin", "-y"])
-        .args(args)
-        .output()
-        .expect("the ffmpeg CLI must be installed");
-    assert!(
-        out.status.success(),
-        "ffmpeg failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
+const REPEATS: usize = 3;
 
 fn make_clip(path: &Path, gop: Option<u32>) {
     let mut args: Vec<String> = [
@@ -186,5 +174,40 @@ fn main() {
             }
             println!("{label:<19} (max mean |ours - CLI| per frame: {worst:.2} / 255)");
         }
+    }
+
+    // FFmpeg's frame threads against one thread per clip (`MediaLimits::decode_threads`), on
+    // the paper's clip shape, at the native size and at the service's default short side.
+    let (_, g30, _) = &clips[0];
+    println!(
+        "\n{:<26} {:>3} {:>9} {:>9}",
+        "decode_threads (kf 1 s)", "N", "native", "short 448"
+    );
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let mut base = None;
+    for threads in [1usize, 2, 4, 0] {
+        let limits = MediaLimits {
+            decode_threads: threads,
+            ..MediaLimits::default()
+        };
+        let ms = |size| {
+            let opts = SampleOptions { frames: 8, size };
+            let (d, _) = time(|| {
+                sample_frames_with_policy(g30, &opts, &limits, DecodePolicy::Auto)
+                    .expect("sampling")
+            });
+            d.as_secs_f64() * 1e3
+        };
+        let (native, short) = (ms(FrameSize::Native), ms(FrameSize::ShortSide(448)));
+        let b = *base.get_or_insert(native);
+        let name = match threads {
+            0 => format!("0 (auto: {} here)", cores.min(8)),
+            n => n.to_string(),
+        };
+        println!(
+            "{name:<26} {:>3} {native:>9.1} {short:>9.1}   ({:.2}x of 1 thread)",
+            8,
+            native / b
+        );
     }
 }

@@ -6,9 +6,13 @@ use ff::frame;
 use ff::software::scaling;
 use ffmpeg_next as ff;
 
-use crate::{FrameSize, MediaError};
+use crate::{FrameSize, MediaError, MAX_OUTPUT_SIDE};
 
 /// The output size for a `w`x`h` picture.
+///
+/// A short-side resize keeps the aspect ratio up to [`MAX_OUTPUT_SIDE`] on the long side and
+/// squeezes beyond it: the models crop a square from the centre anyway, and an uncapped 8192x16
+/// clip at a short side of 224 would be 77 MB of RGB per frame.
 pub(crate) fn output_size(size: FrameSize, w: u32, h: u32) -> (u32, u32) {
     match size {
         FrameSize::Native => (w, h),
@@ -16,7 +20,7 @@ pub(crate) fn output_size(size: FrameSize, w: u32, h: u32) -> (u32, u32) {
         FrameSize::ShortSide(n) => {
             let scale = |long: u32, short: u32| {
                 let v = (f64::from(long) * f64::from(n) / f64::from(short.max(1))).round();
-                v.clamp(1.0, f64::from(u32::MAX)) as u32
+                v.clamp(f64::from(n.max(1)), f64::from(MAX_OUTPUT_SIDE.max(n))) as u32
             };
             if w <= h {
                 (n, scale(h, w))

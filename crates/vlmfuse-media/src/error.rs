@@ -1,11 +1,32 @@
 //! The one error type of the crate.
 //!
 //! Uploads come from users, so most failures are the client's fault (a file that is not a
-//! video, too long, broken). The variants are split finely enough that the HTTP layer can
-//! tell the user *what* is wrong without parsing messages, and [`MediaError::is_client_error`]
-//! separates "fix your upload" (4xx) from "our fault" (5xx).
+//! video, too long, broken). The variants are split finely enough that a front end can tell the
+//! user *what* is wrong without parsing messages ([`MediaError::kind`]), and
+//! [`MediaError::class`] groups them by what the caller can do about it. This crate speaks no
+//! HTTP: the service maps classes to statuses in its one error-mapping place.
+//! [`MediaError::is_interrupted`] marks the decodes that the caller's deadline or cancellation
+//! stopped.
 
 use thiserror::Error;
+
+/// What the caller can do about a [`MediaError`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum MediaErrorClass {
+    /// The upload is bigger than the limit on bytes.
+    Oversized,
+    /// Not a container, or a codec this build cannot decode: send another format.
+    Unsupported,
+    /// Nothing usable was sent: an empty file, or impossible sampling options.
+    Malformed,
+    /// A real video that breaks a limit or is broken (no picture track, corrupt, too long,
+    /// too large a resolution).
+    Rejected,
+    /// The server's side (disk, FFmpeg internals): the upload may be fine.
+    Internal,
+    /// The caller's deadline passed or it cancelled: the upload may be fine; try again later.
+    Interrupted,
+}
 
 /// Why a clip could not be probed or sampled.
 #[derive(Debug, Error)]
@@ -17,6 +38,12 @@ pub enum MediaError {
     /// No demuxer recognises the bytes: the upload is not a media container at all.
     #[error("the file is not a video (no known container format)")]
     NotVideo,
+    /// The bytes are a format FFmpeg knows but uploads may not use: only mp4/mov,
+    /// matroska/webm, avi and mpegts open. Playlists (HLS, ffconcat) name other files, which
+    /// would make the server read its own disk; the other demuxers are attack surface nobody's
+    /// dashcam needs. Holds FFmpeg's name of what the bytes are.
+    #[error("the {0} format is not accepted; send mp4, mov, mkv, webm, avi or mpeg-ts")]
+    UnsupportedContainer(String),
     /// A real media file without a decodable picture track (audio-only, subtitles, a
     /// still cover image).
     #[error("the file has no video stream")]
@@ -36,8 +63,9 @@ pub enum MediaError {
         duration_s: f64,
         max_duration_s: f64,
     },
-    /// Rejected from the header, before decoding: decoding cost and memory grow with the
-    /// pixel count.
+    /// Rejected from the header before decoding, and checked again on every decoded frame
+    /// (a stream may change resolution midway): decoding cost and memory grow with the pixel
+    /// count.
     #[error("the clip is {width}x{height}, more than the limit of {max_width}x{max_height}")]
     ResolutionTooHigh {
         width: u32,
@@ -45,6 +73,15 @@ pub enum MediaError {
         max_width: u32,
         max_height: u32,
     },
+    /// Sampling would decode more frames than [`crate::MediaLimits::max_frames_decoded`]: a
+    /// very high frame rate with few keyframes (999 fps and one keyframe is ~100k decodes).
+    /// Either predicted from the container's keyframe index before decoding, or reached while
+    /// decoding; `frames` is then a lower bound of what the clip would have needed.
+    #[error(
+        "sampling this clip needs at least {frames} decoded frames, more than the limit of \
+         {max_frames} (a very high frame rate with few keyframes)"
+    )]
+    TooManyFrames { frames: u64, max_frames: u64 },
     /// The request asked for something impossible (zero frames, a zero-sized output, ...).
     #[error("invalid sampling options: {0}")]
     InvalidOptions(String),
@@ -55,13 +92,46 @@ pub enum MediaError {
     /// FFmpeg failed in a way that says nothing about the input (allocation, scaler setup).
     #[error("internal media error: {0}")]
     Internal(String),
+    /// The caller cancelled the [`crate::Interrupt`] (the request was abandoned); decoding
+    /// stopped at the next packet or read.
+    #[error("decoding was cancelled")]
+    Cancelled,
+    /// The [`crate::Interrupt`]'s deadline passed before the clip was sampled.
+    #[error("decoding did not finish before its deadline")]
+    DeadlineExceeded,
 }
 
 impl MediaError {
-    /// Whether the request (the uploaded file or the options) is at fault, i.e. whether a
-    /// server should answer 4xx rather than 5xx.
+    /// Whether the request (the uploaded file or the options) is at fault rather than the
+    /// server. Interrupted decodes are not: the upload may be fine, the caller stopped waiting.
     pub fn is_client_error(&self) -> bool {
-        !matches!(self, MediaError::Io(_) | MediaError::Internal(_))
+        !matches!(
+            self.class(),
+            MediaErrorClass::Internal | MediaErrorClass::Interrupted
+        )
+    }
+
+    /// Whether the caller's [`crate::Interrupt`] stopped the decode (cancelled or past its
+    /// deadline), as opposed to anything about the clip.
+    pub fn is_interrupted(&self) -> bool {
+        self.class() == MediaErrorClass::Interrupted
+    }
+
+    pub fn class(&self) -> MediaErrorClass {
+        match self {
+            MediaError::TooLarge { .. } => MediaErrorClass::Oversized,
+            MediaError::NotVideo
+            | MediaError::UnsupportedContainer(_)
+            | MediaError::UnsupportedCodec(_) => MediaErrorClass::Unsupported,
+            MediaError::Empty | MediaError::InvalidOptions(_) => MediaErrorClass::Malformed,
+            MediaError::NoVideoStream
+            | MediaError::Corrupt(_)
+            | MediaError::TooLong { .. }
+            | MediaError::ResolutionTooHigh { .. }
+            | MediaError::TooManyFrames { .. } => MediaErrorClass::Rejected,
+            MediaError::Io(_) | MediaError::Internal(_) => MediaErrorClass::Internal,
+            MediaError::Cancelled | MediaError::DeadlineExceeded => MediaErrorClass::Interrupted,
+        }
     }
 
     /// A short, stable, machine-readable name for API responses and metric labels, so that
@@ -70,30 +140,19 @@ impl MediaError {
         match self {
             MediaError::Empty => "empty",
             MediaError::NotVideo => "not_video",
+            MediaError::UnsupportedContainer(_) => "unsupported_container",
             MediaError::NoVideoStream => "no_video_stream",
             MediaError::UnsupportedCodec(_) => "unsupported_codec",
             MediaError::Corrupt(_) => "corrupt",
             MediaError::TooLarge { .. } => "too_large",
             MediaError::TooLong { .. } => "too_long",
             MediaError::ResolutionTooHigh { .. } => "resolution_too_high",
+            MediaError::TooManyFrames { .. } => "too_many_frames",
             MediaError::InvalidOptions(_) => "invalid_options",
             MediaError::Io(_) => "io",
             MediaError::Internal(_) => "internal",
-        }
-    }
-
-    /// The HTTP status a server would normally answer with, so that every front end maps
-    /// errors the same way (this crate does not depend on an HTTP library, hence the `u16`).
-    pub fn suggested_http_status(&self) -> u16 {
-        match self {
-            MediaError::TooLarge { .. } => 413,
-            MediaError::NotVideo | MediaError::UnsupportedCodec(_) => 415,
-            MediaError::Empty | MediaError::InvalidOptions(_) => 400,
-            MediaError::NoVideoStream
-            | MediaError::Corrupt(_)
-            | MediaError::TooLong { .. }
-            | MediaError::ResolutionTooHigh { .. } => 422,
-            MediaError::Io(_) | MediaError::Internal(_) => 500,
+            MediaError::Cancelled => "cancelled",
+            MediaError::DeadlineExceeded => "deadline_exceeded",
         }
     }
 }

@@ -6,7 +6,8 @@ use std::path::Path;
 
 use common::{ffmpeg, h264, make_clip};
 use vlmfuse_media::{
-    probe, sample_frames, FrameSize, MediaError, MediaLimits, SampleOptions, MAX_SAMPLE_FRAMES,
+    probe, sample_frames, FrameSize, MediaError, MediaErrorClass, MediaLimits, SampleOptions,
+    MAX_SAMPLE_FRAMES,
 };
 
 fn sample(path: &Path) -> Result<vlmfuse_media::DecodedClip, MediaError> {
@@ -52,7 +53,8 @@ fn random_bytes_are_not_video() {
         std::fs::write(&p, noise(len, 0x9E37_79B9_7F4A_7C15 + i as u64)).unwrap();
         let e = both_fail(&p);
         assert!(matches!(e, MediaError::NotVideo), "{len} bytes: {e:?}");
-        assert_eq!(e.suggested_http_status(), 415);
+        assert_eq!(e.class(), MediaErrorClass::Unsupported);
+        assert_eq!(e.kind(), "not_video");
     }
     let text = dir.path().join("notes.txt");
     std::fs::write(&text, "this is a plain text file, not a clip\n".repeat(50)).unwrap();
@@ -174,7 +176,8 @@ fn unknown_codec_is_unsupported() {
     std::fs::write(&p, &bytes).unwrap();
     let e = both_fail(&p);
     assert!(matches!(e, MediaError::UnsupportedCodec(_)), "{e:?}");
-    assert_eq!(e.suggested_http_status(), 415);
+    assert_eq!(e.class(), MediaErrorClass::Unsupported);
+    assert_eq!(e.kind(), "unsupported_codec");
 }
 
 #[test]
@@ -193,7 +196,8 @@ fn limits_are_enforced_before_decoding() {
         matches!(e, MediaError::TooLarge { bytes, max_bytes } if bytes == size && max_bytes == size - 1),
         "{e:?}"
     );
-    assert_eq!(e.suggested_http_status(), 413);
+    assert_eq!(e.class(), MediaErrorClass::Oversized);
+    assert_eq!(e.kind(), "too_large");
     let exact = MediaLimits {
         max_bytes: size,
         ..MediaLimits::default()
@@ -274,7 +278,8 @@ fn invalid_options_and_missing_files() {
     let e = sample(&dir.path().join("missing.mp4")).unwrap_err();
     assert!(matches!(e, MediaError::Io(_)), "{e:?}");
     assert!(!e.is_client_error());
-    assert_eq!(e.suggested_http_status(), 500);
+    assert_eq!(e.class(), MediaErrorClass::Internal);
+    assert_eq!(e.kind(), "io");
     let e = sample(dir.path()).unwrap_err();
     assert!(matches!(e, MediaError::Io(_)), "{e:?}");
 }

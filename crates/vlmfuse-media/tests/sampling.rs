@@ -456,3 +456,52 @@ fn one_keyframe_clip_never_seeks() {
         "{stats:?}"
     );
 }
+
+#[test]
+fn mpegts_h264() {
+    // No index: keyframes are learnt while decoding, seeks are blind.
+    let dir = tempfile::tempdir().unwrap();
+    let p = make_clip(
+        dir.path(),
+        "a.ts",
+        (320, 180, 25, 6.0),
+        &h264(&["-g", "25", "-bf", "2"]),
+    );
+    let e = Expect {
+        container: "mpegts",
+        codec: "h264",
+        width: 320,
+        height: 180,
+        fps: 25.0,
+        seconds: 6.0,
+    };
+    check_clip(&p, &e, 8);
+    assert_eq!(
+        probe(&p, &MediaLimits::default())
+            .unwrap()
+            .keyframe_interval_s,
+        None
+    );
+}
+
+#[test]
+fn mpegts_with_one_keyframe_still_samples_after_a_blind_seek() {
+    // A blind seek into a stream whose only keyframe is the first frame lands where nothing
+    // decodes; sampling must fall back to decoding from the start, not call the clip corrupt.
+    let dir = tempfile::tempdir().unwrap();
+    let p = make_clip(
+        dir.path(),
+        "one.ts",
+        (160, 90, 30, 8.0),
+        &h264(&["-g", "100000", "-sc_threshold", "0"]),
+    );
+    let e = Expect {
+        container: "mpegts",
+        codec: "h264",
+        width: 160,
+        height: 90,
+        fps: 30.0,
+        seconds: 8.0,
+    };
+    check_clip(&p, &e, 4);
+}

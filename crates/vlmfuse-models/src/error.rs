@@ -4,6 +4,9 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
+use vlmfuse_core::chat::ChatError;
+use vlmfuse_core::BackendError;
+
 /// Why a model backend failed.
 #[derive(Debug, thiserror::Error)]
 pub enum ModelError {
@@ -35,6 +38,10 @@ pub enum ModelError {
     #[error("candle: {0}")]
     Candle(#[from] candle_core::Error),
 
+    /// ONNX Runtime: its library, a model file, or a forward pass (the ONNX backends).
+    #[error(transparent)]
+    Onnx(#[from] vlmfuse_ort::OrtError),
+
     /// Local I/O (reading a clip to upload, a config file).
     #[error("i/o on {path}: {source}")]
     Io {
@@ -43,23 +50,24 @@ pub enum ModelError {
         source: std::io::Error,
     },
 
-    /// A remote server answered with an error, or could not be reached, after all retries.
-    #[error("remote {endpoint}: {message} (status {}, after {attempts} attempt(s))",
-        .status.map(|s| s.to_string()).unwrap_or_else(|| "none".into()))]
-    Remote {
-        endpoint: String,
-        status: Option<u16>,
-        attempts: u32,
-        message: String,
-    },
-
-    /// A remote answered 2xx with a body we cannot interpret.
-    #[error("remote {endpoint} sent an unexpected response: {message}")]
-    BadResponse { endpoint: String, message: String },
+    /// A remote server failed: an error status, no answer, a timeout or an unusable body, after
+    /// the shared chat client's retries.
+    #[error(transparent)]
+    Chat(#[from] ChatError),
 
     /// Something took longer than it was allowed to.
     #[error("{what} timed out after {:.3}s", .after.as_secs_f64())]
     Timeout { what: String, after: Duration },
+
+    /// The local backend's worker pool refused or lost the call (queue full, stopped, panicked).
+    #[error(transparent)]
+    Backend(#[from] BackendError),
+}
+
+impl From<vlmfuse_core::FrameError> for ModelError {
+    fn from(e: vlmfuse_core::FrameError) -> Self {
+        ModelError::InvalidInput(e.to_string())
+    }
 }
 
 fn fmt_paths(p: &[PathBuf]) -> String {
@@ -83,10 +91,16 @@ impl ModelError {
             ModelError::Device(_) => "device",
             ModelError::InvalidInput(_) => "invalid_input",
             ModelError::Candle(_) => "candle",
+            ModelError::Onnx(e) => e.kind(),
             ModelError::Io { .. } => "io",
-            ModelError::Remote { .. } => "remote",
-            ModelError::BadResponse { .. } => "bad_response",
+            ModelError::Chat(ChatError::Remote { .. }) => "remote",
+            ModelError::Chat(ChatError::Timeout { .. }) => "timeout",
+            ModelError::Chat(ChatError::BadResponse { .. }) => "bad_response",
             ModelError::Timeout { .. } => "timeout",
+            ModelError::Backend(BackendError::QueueFull { .. }) => "busy",
+            ModelError::Backend(BackendError::TimedOut { .. }) => "timeout",
+            ModelError::Backend(BackendError::Stopped { .. }) => "stopped",
+            ModelError::Backend(BackendError::Panicked { .. }) => "panic",
         }
     }
 }
@@ -111,12 +125,12 @@ mod tests {
 
     #[test]
     fn remote_message_has_status_and_attempts() {
-        let e = ModelError::Remote {
+        let e = ModelError::Chat(ChatError::Remote {
             endpoint: "http://x/v1/chat/completions".into(),
             status: Some(503),
             attempts: 3,
             message: "overloaded".into(),
-        };
+        });
         let s = e.to_string();
         assert!(s.contains("503") && s.contains("3 attempt"), "{s}");
         assert_eq!(e.kind(), "remote");

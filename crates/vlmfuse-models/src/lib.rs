@@ -5,18 +5,20 @@
 pub mod device;
 pub mod embed;
 mod error;
-pub mod fixtures;
-mod frames;
 pub mod lora;
+pub mod models;
+pub mod ops;
 pub mod reporter;
 pub mod weights;
 
 pub use device::parse_device;
-pub use embed::{ClipEmbedder, ContextEmbedder};
+pub use embed::{ClipEmbedder, ContextEmbedder, Embedder, OnnxClipConfig, OnnxClipEmbedder};
 pub use error::ModelError;
-pub use frames::{Frame, FrameRef};
 pub use reporter::{
-    run_all, CandleVlmConfig, CandleVlmReporter, ClipInput, ClipMeta, OpenAiReporter,
-    OpenAiReporterConfig, Reporter, ReporterFailure, ReporterOutput, DEFAULT_PROMPT,
+    run_all, CandleVlmConfig, CandleVlmReporter, ClipInput, ClipMeta, LocalReporter,
+    OpenAiReporter, OpenAiReporterConfig, Reporter, ReporterFailure, ReporterOutput, RoundReporter,
+    DEFAULT_PROMPT,
 };
+pub use vlmfuse_core::{BackendError, BackendPool, PoolConfig};
+pub use vlmfuse_core::{Frame, FrameRef};
 pub use weights::WeightSource;

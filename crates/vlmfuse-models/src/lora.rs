@@ -108,6 +108,20 @@ pub fn merge_adapter(
     adapter: &HashMap<String, Tensor>,
     cfg: &LoraConfig,
 ) -> Result<Vec<String>, ModelError> {
+    merge_adapter_mapped(base, adapter, cfg, |m| m.to_string())
+}
+
+/// [`merge_adapter`] for checkpoints whose module names moved between library versions: `map`
+/// turns an adapter module path (after `base_model.model.`) into the base key prefix, so an
+/// adapter trained against either layout (e.g. transformers 4's `language_model.model.layers`
+/// and 5's `model.language_model.layers`) lands on the same weight. Pattern overrides
+/// (`alpha_pattern`, `rank_pattern`) still match the adapter's own module names, as PEFT does.
+pub fn merge_adapter_mapped(
+    base: &mut HashMap<String, Tensor>,
+    adapter: &HashMap<String, Tensor>,
+    cfg: &LoraConfig,
+    map: impl Fn(&str) -> String,
+) -> Result<Vec<String>, ModelError> {
     if cfg.use_dora {
         return Err(ModelError::BadConfig(
             "DoRA adapters (use_dora) cannot be merged here".into(),
@@ -129,7 +143,7 @@ pub fn merge_adapter(
                     reason: format!("adapter has {m}.lora_A but no lora_B"),
                 })?;
         let module = m.strip_prefix("base_model.model.").unwrap_or(m);
-        let key = format!("{module}.weight");
+        let key = format!("{}.weight", map(module));
         let w0 = base.get(&key).ok_or_else(|| ModelError::BadWeights {
             path: Default::default(),
             reason: format!("adapter targets `{key}`, which the base model does not have"),
@@ -175,8 +189,9 @@ pub fn load_adapter(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::fixtures::Rng;
     use candle_core::Device;
+    use vlmfuse_testkit::fixtures::RandomTensor;
+    use vlmfuse_testkit::rng::SplitMix64 as Rng;
 
     fn t(v: &[f32], shape: (usize, usize)) -> Tensor {
         Tensor::from_slice(v, shape, &Device::Cpu).unwrap()

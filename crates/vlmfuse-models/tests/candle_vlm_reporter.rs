@@ -9,11 +9,11 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use candle_core::{DType, Device, Tensor};
-use vlmfuse_models::fixtures::{write_hf_cache_entry, TinyQwen3Vl};
 use vlmfuse_models::{
-    run_all, CandleVlmConfig, CandleVlmReporter, ClipInput, ClipMeta, Frame, ModelError, Reporter,
-    ReporterFailure, WeightSource,
+    run_all, BackendPool, CandleVlmConfig, CandleVlmReporter, ClipInput, ClipMeta, Frame,
+    LocalReporter, ModelError, PoolConfig, Reporter, ReporterFailure, RoundReporter, WeightSource,
 };
+use vlmfuse_testkit::fixtures::{write_hf_cache_entry, TinyQwen3Vl};
 
 const PROMPT: &str = "describe the dashcam clip";
 
@@ -64,7 +64,7 @@ fn clip_frames(dir: &Path) -> Vec<Frame> {
                 width: w,
                 height: h,
                 rgb: c.to_vec(),
-                t_s: i as f64 / 5.0,
+                pts_s: i as f64 / 5.0,
             })
             .collect();
     }
@@ -76,7 +76,7 @@ fn clip_frames(dir: &Path) -> Vec<Frame> {
             rgb: (0..frame_len)
                 .map(|i| ((i * 13 + k * 41) % 256) as u8)
                 .collect(),
-            t_s: k as f64 / 5.0,
+            pts_s: k as f64 / 5.0,
         })
         .collect()
 }
@@ -89,6 +89,12 @@ fn config(name: &str, weights: WeightSource) -> CandleVlmConfig {
         min_pixels: 16,
         ..CandleVlmConfig::new(name, weights)
     }
+}
+
+/// The reporter as the service runs it: behind its worker thread and queue.
+fn pooled(r: CandleVlmReporter) -> Arc<BackendPool<CandleVlmReporter>> {
+    let name = r.name().to_string();
+    Arc::new(BackendPool::new(name, Arc::new(r), PoolConfig::default()).unwrap())
 }
 
 fn clip(dir: &Path) -> ClipInput {
@@ -108,7 +114,8 @@ async fn generates_deterministically_from_local_sharded_and_hf_cache() {
     let clip = clip(tmp.path());
 
     let t0 = Instant::now();
-    let local = CandleVlmReporter::load(config("local", WeightSource::local(&model_dir))).unwrap();
+    let local =
+        pooled(CandleVlmReporter::load(config("local", WeightSource::local(&model_dir))).unwrap());
     let load_ms = t0.elapsed().as_secs_f64() * 1e3;
     let a = local.run(&clip).await.unwrap();
     let b = local.run(&clip).await.unwrap();
@@ -118,6 +125,7 @@ async fn generates_deterministically_from_local_sharded_and_hf_cache() {
     assert!(a.latency_ms > 0.0);
 
     let g = local
+        .backend()
         .generate_blocking(&clip.frames, &AtomicBool::new(false))
         .unwrap();
     assert_eq!(g.text, a.text);
@@ -138,8 +146,9 @@ async fn generates_deterministically_from_local_sharded_and_hf_cache() {
     // Same weights through a sharded checkpoint and through the HF cache layout.
     let sharded_dir = tmp.path().join("sharded");
     tiny.write_sharded(&sharded_dir, 7).unwrap();
-    let sharded =
-        CandleVlmReporter::load(config("sharded", WeightSource::local(&sharded_dir))).unwrap();
+    let sharded = pooled(
+        CandleVlmReporter::load(config("sharded", WeightSource::local(&sharded_dir))).unwrap(),
+    );
     assert_eq!(sharded.run(&clip).await.unwrap().text, a.text);
 
     let cache = tmp.path().join("hf");
@@ -154,7 +163,7 @@ async fn generates_deterministically_from_local_sharded_and_hf_cache() {
     )
     .unwrap();
     let hub = WeightSource::hub("tiny/qwen3-vl", "main").with_cache_dir(&cache);
-    let cached = CandleVlmReporter::load(config("hub", hub)).unwrap();
+    let cached = pooled(CandleVlmReporter::load(config("hub", hub)).unwrap());
     assert_eq!(cached.run(&clip).await.unwrap().text, a.text);
 }
 
@@ -169,20 +178,17 @@ async fn timeout_leaves_the_model_usable() {
         ..config("slow", WeightSource::local(&model_dir))
     })
     .unwrap();
-    let engine = slow.engine().clone();
-    let r: Arc<dyn Reporter> = Arc::new(slow);
+    let pool = pooled(slow);
+    let r: Arc<dyn Reporter> = pool.clone();
     let t0 = Instant::now();
-    let out = run_all(std::slice::from_ref(&r), &clip, Duration::from_millis(1)).await;
+    let out = run_all(&[RoundReporter::new(r, Duration::from_millis(1))], &clip).await;
     assert!(matches!(out[0].1, Err(ReporterFailure::TimedOut(_))));
     assert!(t0.elapsed() < Duration::from_secs(2));
-    // The cancelled generation stops at its next token and releases the model, instead of
-    // holding it for 10k tokens.
+    // The cancelled generation stops at its next token and releases the model (its one worker),
+    // instead of holding it for 10k tokens.
     let freed = tokio::time::timeout(
         Duration::from_secs(10),
-        tokio::task::spawn_blocking(move || {
-            let e = engine.lock().unwrap();
-            e.eos_ids().to_vec()
-        }),
+        pool.call(|r, _| r.engine().eos_ids().to_vec()),
     )
     .await;
     assert!(freed.is_ok(), "model still busy after the timeout");
@@ -203,7 +209,7 @@ fn bad_inputs_are_errors_not_panics() {
         width: 4,
         height: 4,
         rgb: vec![0; 5],
-        t_s: 0.0,
+        pts_s: 0.0,
     };
     assert_eq!(
         r.generate_blocking(&[bad], &AtomicBool::new(false))
@@ -255,8 +261,8 @@ fn lora_adapter_is_merged_on_real_key_names() {
         ..config("tuned", WeightSource::local(&model_dir))
     })
     .unwrap();
-    let base = base.engine().lock().unwrap();
-    let tuned = tuned.engine().lock().unwrap();
+    let base = base.engine();
+    let tuned = tuned.engine();
     assert_eq!(tuned.merged_lora_keys().len(), 2 * tiny.layers);
     assert!(base.merged_lora_keys().is_empty());
 

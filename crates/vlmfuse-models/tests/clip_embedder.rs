@@ -1,8 +1,8 @@
 //! The CLIP embedder loaded from tiny random-weight checkpoints in the real HF layout.
 
 use candle_core::Device;
-use vlmfuse_models::fixtures::{write_hf_cache_entry, TinyClip};
 use vlmfuse_models::{ClipEmbedder, ContextEmbedder, FrameRef, WeightSource};
+use vlmfuse_testkit::fixtures::{write_hf_cache_entry, TinyClip};
 
 fn frame(seed: u32, w: u32, h: u32) -> Vec<u8> {
     (0..w * h * 3)
@@ -212,4 +212,44 @@ fn empty_or_malformed_frames_are_input_errors() {
         }])
         .unwrap_err();
     assert_eq!(e.kind(), "invalid_input");
+}
+
+#[test]
+fn a_config_written_by_transformers_loads() {
+    // transformers writes CLIPVisionConfig's default `projection_dim: 512` inside
+    // `vision_config` beside the real top-level value (16 here), and CLIPModel sizes
+    // `visual_projection` from the top-level one (tests/data/make_clip_transformers_config.py).
+    let tmp = tempfile::tempdir().unwrap();
+    TinyClip::default().write(tmp.path(), 3).unwrap();
+    let cfg = include_str!("data/clip_transformers_config.json");
+    let parsed: serde_json::Value = serde_json::from_str(cfg).unwrap();
+    assert_eq!(parsed["vision_config"]["projection_dim"], 512);
+    std::fs::write(tmp.path().join("config.json"), cfg).unwrap();
+
+    let emb = ClipEmbedder::load(&WeightSource::local(tmp.path()), &Device::Cpu)
+        .unwrap_or_else(|e| panic!("transformers' own config must load: {e}"));
+    assert_eq!(emb.dim(), 16);
+    assert_eq!(emb.settings().projection_dim, 16);
+    let f = frame(5, 40, 30);
+    let v = emb
+        .embed(&[FrameRef {
+            width: 40,
+            height: 30,
+            rgb: &f,
+        }])
+        .unwrap();
+    assert_eq!(v.len(), 16);
+
+    // The same embedder as from TinyClip's own config, which states 16 in both places.
+    let own = tempfile::tempdir().unwrap();
+    TinyClip::default().write(own.path(), 3).unwrap();
+    let reference = ClipEmbedder::load(&WeightSource::local(own.path()), &Device::Cpu).unwrap();
+    let w = reference
+        .embed(&[FrameRef {
+            width: 40,
+            height: 30,
+            rgb: &f,
+        }])
+        .unwrap();
+    assert_eq!(v, w);
 }

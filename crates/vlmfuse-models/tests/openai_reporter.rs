@@ -14,6 +14,7 @@ use vlmfuse_models::reporter::{FrameFormat, OpenAiMode};
 use vlmfuse_models::{
     ClipInput, ClipMeta, Frame, OpenAiReporter, OpenAiReporterConfig, Reporter, DEFAULT_PROMPT,
 };
+use vlmfuse_testkit::server::serve_local;
 
 #[derive(Clone)]
 struct Reply {
@@ -81,10 +82,7 @@ async fn fake(script: impl Fn(usize) -> Reply + Send + Sync + 'static) -> (Strin
     let app = Router::new()
         .route("/v1/chat/completions", post(handler))
         .with_state(f.clone());
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr = listener.local_addr().unwrap();
-    tokio::spawn(async move { axum::serve(listener, app).await.unwrap() });
-    (format!("http://{addr}"), f)
+    (serve_local(app).await, f)
 }
 
 fn cfg(base_url: &str) -> OpenAiReporterConfig {
@@ -108,7 +106,7 @@ fn clip(dir: &std::path::Path) -> ClipInput {
             rgb: (0..36u8)
                 .map(|i| i.wrapping_mul(7).wrapping_add(k * 50))
                 .collect(),
-            t_s: k as f64,
+            pts_s: k as f64,
         })
         .collect();
     ClipInput {

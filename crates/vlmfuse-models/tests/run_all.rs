@@ -4,9 +4,19 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use futures::future::BoxFuture;
+use vlmfuse_core::chat::ChatError;
 use vlmfuse_models::{
     run_all, ClipInput, ClipMeta, ModelError, Reporter, ReporterFailure, ReporterOutput,
+    RoundReporter,
 };
+
+/// Every reporter under the same round timeout.
+fn timed(reporters: Vec<Arc<dyn Reporter>>, timeout: Duration) -> Vec<RoundReporter> {
+    reporters
+        .into_iter()
+        .map(|r| RoundReporter::new(r, timeout))
+        .collect()
+}
 
 enum Behaviour {
     Answer(Duration),
@@ -31,12 +41,12 @@ impl Reporter for Fake {
                         model: self.0.into(),
                     })
                 }
-                Behaviour::Fail => Err(ModelError::Remote {
+                Behaviour::Fail => Err(ModelError::Chat(ChatError::Remote {
                     endpoint: "http://x".into(),
                     status: Some(502),
                     attempts: 1,
                     message: "bad gateway".into(),
-                }),
+                })),
                 Behaviour::Panic => panic!("reporter bug"),
             }
         })
@@ -61,7 +71,7 @@ async fn slow_and_failing_reporters_do_not_sink_the_round() {
     };
     let timeout = Duration::from_millis(400);
     let t0 = Instant::now();
-    let res = run_all(&reporters, &clip, timeout).await;
+    let res = run_all(&timed(reporters, timeout), &clip).await;
     let el = t0.elapsed();
     // Concurrent: about one timeout, not 20 + 30000 + 250 ms, and not 400 + 250 either.
     assert!(el >= timeout, "{el:?}");
@@ -93,7 +103,7 @@ async fn a_panicking_reporter_is_reported_not_propagated() {
         frames: Vec::new().into(),
         meta: ClipMeta::default(),
     };
-    let res = run_all(&reporters, &clip, Duration::from_secs(5)).await;
+    let res = run_all(&timed(reporters, Duration::from_secs(5)), &clip).await;
     let buggy = res[0].1.as_ref().unwrap_err();
     assert_eq!(buggy.kind(), "panic");
     assert!(buggy.to_string().contains("reporter bug"), "{buggy}");
@@ -107,7 +117,5 @@ async fn no_reporters_is_an_empty_round() {
         frames: Vec::new().into(),
         meta: ClipMeta::default(),
     };
-    assert!(run_all(&[], &clip, Duration::from_millis(10))
-        .await
-        .is_empty());
+    assert!(run_all(&[], &clip).await.is_empty());
 }

@@ -7,28 +7,17 @@
 //! service does), so the run does not spend minutes on 10k fsynced feedbacks first.
 
 use std::collections::BTreeMap;
-use std::io::{BufRead, BufReader, Read, Write};
-use std::net::TcpStream;
+use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use vlmfuse_fusion::{Engine, FusionConfig, Ontology, RoundRecord};
 use vlmfuse_store::{Identity, NewRound, Store, StoredFeedback};
+use vlmfuse_testkit::rng::Lcg as Rng;
 
 const D: usize = 128;
 const REPORTERS: [&str; 3] = ["vlaad", "videollama2", "videollava"];
-
-struct Rng(u64);
-impl Rng {
-    fn f(&mut self) -> f64 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (self.0 >> 11) as f64 / (1u64 << 53) as f64
-    }
-}
 
 fn record(rng: &mut Rng, ont: &Ontology) -> RoundRecord {
     let mut reports = BTreeMap::new();
@@ -93,66 +82,50 @@ fn prefill(dir: &std::path::Path, bank: u64) {
     store.insert_feedback(&fbs).unwrap();
 }
 
-/// A keep-alive HTTP/1.1 connection that sends one request at a time.
-struct Conn {
-    w: TcpStream,
-    r: BufReader<TcpStream>,
+/// One request of the load: a route and, for a POST, its JSON body.
+#[derive(Clone)]
+enum Req {
+    Get(String),
+    Post(String, Vec<u8>),
 }
 
-impl Conn {
-    fn new(addr: &str) -> Conn {
-        let s = TcpStream::connect(addr).unwrap();
-        s.set_nodelay(true).unwrap();
-        Conn {
-            r: BufReader::new(s.try_clone().unwrap()),
-            w: s,
-        }
-    }
-
-    fn send(&mut self, raw: &[u8]) -> u16 {
-        self.w.write_all(raw).unwrap();
-        let mut line = String::new();
-        self.r.read_line(&mut line).unwrap();
-        let status: u16 = line.split(' ').nth(1).unwrap().parse().unwrap();
-        let mut len = 0usize;
-        loop {
-            line.clear();
-            self.r.read_line(&mut line).unwrap();
-            let l = line.trim_end();
-            if l.is_empty() {
-                break;
-            }
-            if let Some((k, v)) = l.split_once(':') {
-                if k.eq_ignore_ascii_case("content-length") {
-                    len = v.trim().parse().unwrap();
-                }
-            }
-        }
-        let mut body = vec![0u8; len];
-        self.r.read_exact(&mut body).unwrap();
-        status
-    }
-}
-
-fn load(addr: &str, requests: Arc<Vec<Vec<u8>>>, clients: usize, secs: f64) -> (f64, Vec<f64>) {
+/// `clients` keep-alive connections (one reqwest client each, so none shares a socket), each
+/// sending one request at a time for `secs` seconds.
+fn load(requests: Arc<Vec<Req>>, clients: usize, secs: f64) -> (f64, Vec<f64>) {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
     let stop = Arc::new(AtomicBool::new(false));
     let done = Arc::new(AtomicU64::new(0));
-    let handles: Vec<_> = (0..clients)
+    let tasks: Vec<_> = (0..clients)
         .map(|c| {
-            let (addr, reqs, stop, done) = (
-                addr.to_string(),
-                requests.clone(),
-                stop.clone(),
-                done.clone(),
-            );
-            std::thread::spawn(move || {
-                let mut conn = Conn::new(&addr);
+            let (reqs, stop, done) = (requests.clone(), stop.clone(), done.clone());
+            rt.spawn(async move {
+                let client = reqwest::Client::builder()
+                    .no_proxy()
+                    .pool_max_idle_per_host(1)
+                    .build()
+                    .unwrap();
                 let mut lat = Vec::new();
                 let mut i = c;
                 while !stop.load(Ordering::Relaxed) {
                     let t = Instant::now();
-                    let st = conn.send(&reqs[i % reqs.len()]);
-                    assert_eq!(st, 200);
+                    let resp = match &reqs[i % reqs.len()] {
+                        Req::Get(url) => client.get(url).send().await,
+                        Req::Post(url, body) => {
+                            client
+                                .post(url)
+                                .header("content-type", "application/json")
+                                .body(body.clone())
+                                .send()
+                                .await
+                        }
+                    }
+                    .unwrap();
+                    assert_eq!(resp.status(), 200);
+                    resp.bytes().await.unwrap();
                     lat.push(t.elapsed().as_secs_f64());
                     done.fetch_add(1, Ordering::Relaxed);
                     i += clients;
@@ -164,10 +137,13 @@ fn load(addr: &str, requests: Arc<Vec<Vec<u8>>>, clients: usize, secs: f64) -> (
     let start = Instant::now();
     std::thread::sleep(Duration::from_secs_f64(secs));
     stop.store(true, Ordering::Relaxed);
-    let mut lat: Vec<f64> = handles
-        .into_iter()
-        .flat_map(|h| h.join().unwrap())
-        .collect();
+    let mut lat: Vec<f64> = rt.block_on(async {
+        let mut all = Vec::new();
+        for t in tasks {
+            all.extend(t.await.unwrap());
+        }
+        all
+    });
     let rps = done.load(Ordering::Relaxed) as f64 / start.elapsed().as_secs_f64();
     lat.sort_by(f64::total_cmp);
     let pct = |p: f64| lat[((lat.len() - 1) as f64 * p) as usize] * 1e3;
@@ -215,24 +191,20 @@ fn main() {
 
     let ont = Ontology::paper();
     let mut rng = Rng(7);
-    let fuse: Vec<Vec<u8>> = (0..512)
+    let fuse: Vec<Req> = (0..512)
         .map(|_| {
             let mut rec = record(&mut rng, &ont);
             rec.truth = None;
-            let body = serde_json::to_vec(&rec).unwrap();
-            let mut req = format!(
-                "POST /v1/fuse HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n",
-                body.len()
+            Req::Post(
+                format!("http://{addr}/v1/fuse"),
+                serde_json::to_vec(&rec).unwrap(),
             )
-            .into_bytes();
-            req.extend_from_slice(&body);
-            req
         })
         .collect();
-    let health = vec![format!("GET /healthz HTTP/1.1\r\nHost: {addr}\r\n\r\n").into_bytes()];
+    let health = vec![Req::Get(format!("http://{addr}/healthz"))];
 
-    let (h_rps, h_lat) = load(&addr, Arc::new(health), clients, secs);
-    let (f_rps, f_lat) = load(&addr, Arc::new(fuse), clients, secs);
+    let (h_rps, h_lat) = load(Arc::new(health), clients, secs);
+    let (f_rps, f_lat) = load(Arc::new(fuse), clients, secs);
     println!("bank {bank}, d {D}, {clients} keep-alive clients, {secs} s each");
     println!(
         "/healthz : {h_rps:>9.0} req/s  p50 {:.3} ms  p99 {:.3} ms",

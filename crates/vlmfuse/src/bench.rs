@@ -6,8 +6,8 @@ use crate::eval::{self, EvalArgs};
 use clap::Args;
 use std::io::Write;
 use std::time::Instant;
-use vlmfuse_fusion::bench::{engine_bench, knn_bench, synthetic_records, EngineBenchArgs};
 use vlmfuse_fusion::{FusionConfig, Ontology};
+use vlmfuse_testkit::bench::{engine_bench, knn_bench, synthetic_records, EngineBenchArgs};
 
 #[derive(Args, Debug)]
 pub struct BenchArgs {
@@ -28,17 +28,16 @@ pub struct BenchArgs {
     pub engine_only: bool,
 }
 
-fn eval_bench(args: &BenchArgs) -> Result<(), String> {
+fn eval_bench(args: &BenchArgs) -> anyhow::Result<()> {
     let records = synthetic_records(2000, 103, args.reporters, 5);
     let dir = std::env::temp_dir().join(format!("vlmfuse-bench-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).map_err(|e| e.to_string())?;
+    std::fs::create_dir_all(&dir)?;
     let path = dir.join("rounds-2000-d103.jsonl");
     {
-        let mut f =
-            std::io::BufWriter::new(std::fs::File::create(&path).map_err(|e| e.to_string())?);
+        let mut f = std::io::BufWriter::new(std::fs::File::create(&path)?);
         for (_, r) in &records {
-            serde_json::to_writer(&mut f, r).map_err(|e| e.to_string())?;
-            f.write_all(b"\n").map_err(|e| e.to_string())?;
+            serde_json::to_writer(&mut f, r)?;
+            f.write_all(b"\n")?;
         }
     }
     let eargs = EvalArgs {
@@ -75,7 +74,7 @@ fn eval_bench(args: &BenchArgs) -> Result<(), String> {
     Ok(())
 }
 
-pub fn run(args: BenchArgs) -> Result<(), String> {
+pub fn run(args: BenchArgs) -> anyhow::Result<()> {
     if cfg!(debug_assertions) {
         eprintln!("warning: a debug build; run `cargo run --release -- bench` for real numbers");
     }

@@ -3,6 +3,7 @@
 //! truth of all but N history rounds, and `--curve` measures the learning curve of both methods.
 
 use crate::plots;
+use anyhow::{bail, Context};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Deserialize;
@@ -140,62 +141,61 @@ struct EvalConfigFile {
     ontology: Option<Vec<Label>>,
 }
 
-pub fn load_fusion_config(path: Option<&Path>) -> Result<(FusionConfig, Ontology), String> {
+pub fn load_fusion_config(path: Option<&Path>) -> anyhow::Result<(FusionConfig, Ontology)> {
     let Some(path) = path else {
         return Ok((FusionConfig::default(), Ontology::paper()));
     };
-    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let file: EvalConfigFile =
-        toml::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+    let at = || path.display().to_string();
+    let text = std::fs::read_to_string(path).with_context(at)?;
+    let file: EvalConfigFile = toml::from_str(&text).with_context(at)?;
     let ontology = match file.ontology {
-        Some(labels) => Ontology::new(labels).map_err(|e| format!("{}: {e}", path.display()))?,
+        Some(labels) => Ontology::new(labels).with_context(at)?,
         None => Ontology::paper(),
     };
     let fusion = file.fusion.unwrap_or_default();
     fusion
         .validate()
-        .map_err(|e| format!("{}: [fusion] {e}", path.display()))?;
+        .map_err(|e| anyhow::anyhow!("{}: [fusion] {e}", path.display()))?;
     Ok((fusion, ontology))
 }
 
 /// The method `eval` runs: `--method`, else the config file's `[fusion] method` if it names one,
 /// else [`DEFAULT_METHOD`].
-pub fn resolve_method(args: &EvalArgs) -> Result<Method, String> {
+pub fn resolve_method(args: &EvalArgs) -> anyhow::Result<Method> {
     if let Some(m) = args.method {
         return Ok(m);
     }
     if let Some(path) = &args.config {
-        let text =
-            std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
-        let v: toml::Value =
-            toml::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+        let at = || path.display().to_string();
+        let text = std::fs::read_to_string(path).with_context(at)?;
+        let v: toml::Value = toml::from_str(&text).with_context(at)?;
         if let Some(m) = v
             .get("fusion")
             .and_then(|f| f.get("method"))
             .and_then(|m| m.as_str())
         {
-            return parse_method(m).map_err(|e| format!("{}: [fusion] {e}", path.display()));
+            return parse_method(m).map_err(|e| anyhow::anyhow!("{}: [fusion] {e}", path.display()));
         }
     }
     Ok(DEFAULT_METHOD)
 }
 
 /// Reads a rounds file, naming the line of the first problem.
-pub fn read_rounds(path: &Path) -> Result<Vec<(usize, RoundRecord)>, String> {
-    let f = File::open(path).map_err(|e| format!("{}: {e}", path.display()))?;
+pub fn read_rounds(path: &Path) -> anyhow::Result<Vec<(usize, RoundRecord)>> {
+    let f = File::open(path).with_context(|| path.display().to_string())?;
     let mut out = Vec::new();
     for (i, line) in BufReader::new(f).lines().enumerate() {
         let line_no = i + 1;
-        let line = line.map_err(|e| format!("{}: line {line_no}: {e}", path.display()))?;
+        let at = || format!("{}: line {line_no}", path.display());
+        let line = line.with_context(at)?;
         if line.trim().is_empty() {
             continue;
         }
-        let rec: RoundRecord = serde_json::from_str(&line)
-            .map_err(|e| format!("{}: line {line_no}: {e}", path.display()))?;
+        let rec: RoundRecord = serde_json::from_str(&line).with_context(at)?;
         out.push((line_no, rec));
     }
     if out.is_empty() {
-        return Err(format!("{}: no rounds in the file", path.display()));
+        bail!("{}: no rounds in the file", path.display());
     }
     Ok(out)
 }
@@ -220,7 +220,7 @@ pub struct EvalRun {
     pub seed: u64,
 }
 
-fn ablation_list(names: &[String]) -> Result<Vec<String>, String> {
+fn ablation_list(names: &[String]) -> anyhow::Result<Vec<String>> {
     let mut out: Vec<String> = Vec::new();
     for n in names {
         let expanded: Vec<String> = if n == "all" {
@@ -228,10 +228,10 @@ fn ablation_list(names: &[String]) -> Result<Vec<String>, String> {
         } else if Ablations::from_name(n).is_some() {
             vec![n.clone()]
         } else {
-            return Err(format!(
+            bail!(
                 "unknown ablation {n:?}; expected one of {} or all",
                 Ablations::NAMES.join(", ")
-            ));
+            );
         };
         for e in expanded {
             if !out.contains(&e) {
@@ -248,9 +248,9 @@ pub fn evaluate(
     ontology: &Ontology,
     records: &[(usize, RoundRecord)],
     args: &EvalArgs,
-) -> Result<EvalRun, String> {
+) -> anyhow::Result<EvalRun> {
     let ablations = ablation_list(&args.ablations)?;
-    let (engine, all_rounds) = prepare(cfg, ontology, records).map_err(|e| e.to_string())?;
+    let (engine, all_rounds) = prepare(cfg, ontology, records)?;
     let n_hist = history_len(all_rounds.len(), args.split);
     let (rounds, labelled) = hide_labels(
         &all_rounds,
@@ -286,8 +286,7 @@ pub fn evaluate(
         if done.is_multiple_of(64) {
             bar.set_position(done);
         }
-    })
-    .map_err(|e| e.to_string())?;
+    })?;
     let mut rows = vec![Row {
         name: "fusion (full method)".into(),
         kind: "method",
@@ -297,18 +296,16 @@ pub fn evaluate(
         bar.set_message(name.clone());
         let mut c = cfg.clone();
         c.ablations = Ablations::from_name(name).expect("checked above");
-        let mut fresh = Engine::new(c, ontology.clone(), engine.reporters().to_vec())
-            .map_err(|e| e.to_string())?;
+        let mut fresh = Engine::new(c, ontology.clone(), engine.reporters().to_vec())?;
         if let Some(d) = engine.dim() {
-            fresh.fix_dim(d).map_err(|e| e.to_string())?;
+            fresh.fix_dim(d)?;
         }
         let (_, outs) = replay(fresh, &rounds, &opts, &mut |_| {
             done += 1;
             if done.is_multiple_of(64) {
                 bar.set_position(done);
             }
-        })
-        .map_err(|e| e.to_string())?;
+        })?;
         rows.push(Row {
             name: format!("ablation: {name}"),
             kind: "ablation",
@@ -479,7 +476,7 @@ fn report_json(run: &EvalRun, args: &EvalArgs) -> Value {
     })
 }
 
-pub fn run(args: EvalArgs) -> Result<(), String> {
+pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let started = Instant::now();
     let (mut cfg, ontology) = load_fusion_config(args.config.as_deref())?;
     cfg.method = resolve_method(&args)?;
@@ -488,21 +485,21 @@ pub fn run(args: EvalArgs) -> Result<(), String> {
         return run_curve(&cfg, &ontology, &records, &args, started);
     }
     let run = evaluate(&cfg, &ontology, &records, &args)
-        .map_err(|e| format!("{}: {e}", args.rounds.display()))?;
+        .with_context(|| args.rounds.display().to_string())?;
     print!("{}", format_table(&run));
     if let Some(path) = &args.emit_rounds {
-        let f = File::create(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let at = || path.display().to_string();
+        let f = File::create(path).with_context(at)?;
         let mut w = BufWriter::new(f);
         for o in &run.outcomes {
-            serde_json::to_writer(&mut w, &emit_line(&run.engine, o)).map_err(|e| e.to_string())?;
-            w.write_all(b"\n").map_err(|e| e.to_string())?;
+            serde_json::to_writer(&mut w, &emit_line(&run.engine, o)).with_context(at)?;
+            w.write_all(b"\n").with_context(at)?;
         }
-        w.flush().map_err(|e| format!("{}: {e}", path.display()))?;
+        w.flush().with_context(at)?;
     }
     if let Some(path) = &args.report {
-        let text =
-            serde_json::to_string_pretty(&report_json(&run, &args)).map_err(|e| e.to_string())?;
-        std::fs::write(path, text).map_err(|e| format!("{}: {e}", path.display()))?;
+        let text = serde_json::to_string_pretty(&report_json(&run, &args))?;
+        std::fs::write(path, text).with_context(|| path.display().to_string())?;
     }
     if let Some(dir) = &args.plots {
         let files = plots::write_all(dir, &run)?;
@@ -545,7 +542,7 @@ pub fn evaluate_curve(
     ontology: &Ontology,
     records: &[(usize, RoundRecord)],
     args: &EvalArgs,
-) -> Result<CurveRun, String> {
+) -> anyhow::Result<CurveRun> {
     if !args.ablations.is_empty() || args.emit_rounds.is_some() {
         return Err(
             "--curve does not combine with --ablation or --emit-rounds; run those with \
@@ -553,7 +550,7 @@ pub fn evaluate_curve(
                 .into(),
         );
     }
-    let (engine, all_rounds) = prepare(cfg, ontology, records).map_err(|e| e.to_string())?;
+    let (engine, all_rounds) = prepare(cfg, ontology, records)?;
     let n_hist = history_len(all_rounds.len(), args.split);
     let available = all_rounds[..n_hist]
         .iter()
@@ -590,9 +587,9 @@ pub fn evaluate_curve(
                 ..cfg.clone()
             };
             let mut fresh = Engine::new(c, ontology.clone(), engine.reporters().to_vec())
-                .map_err(|e| e.to_string())?;
+                ?;
             if let Some(d) = engine.dim() {
-                fresh.fix_dim(d).map_err(|e| e.to_string())?;
+                fresh.fix_dim(d)?;
             }
             let (end, outs) = replay(fresh, &rounds, &opts, &mut |_| {
                 done += 1;
@@ -600,7 +597,7 @@ pub fn evaluate_curve(
                     bar.set_position(done);
                 }
             })
-            .map_err(|e| e.to_string())?;
+            ?;
             points.push(CurvePoint {
                 keep,
                 labelled,
@@ -698,13 +695,13 @@ fn run_curve(
     records: &[(usize, RoundRecord)],
     args: &EvalArgs,
     started: Instant,
-) -> Result<(), String> {
+) -> anyhow::Result<()> {
     let c = evaluate_curve(cfg, ontology, records, args)
-        .map_err(|e| format!("{}: {e}", args.rounds.display()))?;
+        .with_context(|| args.rounds.display().to_string())?;
     print!("{}", format_curve(&c));
     if let Some(path) = &args.report {
-        let text = serde_json::to_string_pretty(&curve_json(&c, args)).map_err(|e| e.to_string())?;
-        std::fs::write(path, text).map_err(|e| format!("{}: {e}", path.display()))?;
+        let text = serde_json::to_string_pretty(&curve_json(&c, args))?;
+        std::fs::write(path, text).with_context(|| path.display().to_string())?;
     }
     if let Some(dir) = &args.plots {
         for f in plots::write_curve(dir, &c)? {

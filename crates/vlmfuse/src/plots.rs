@@ -18,12 +18,13 @@ const PALETTE: [RGBColor; 8] = [
     RGBColor(127, 127, 127),
 ];
 
-fn err<E: std::fmt::Display>(path: &Path) -> impl Fn(E) -> String + '_ {
-    move |e| format!("{}: {e}", path.display())
+/// plotters' errors borrow the backend, so they are flattened to text with the file named.
+fn err<E: std::fmt::Display>(path: &Path) -> impl Fn(E) -> anyhow::Error + '_ {
+    move |e| anyhow::anyhow!("{}: {e}", path.display())
 }
 
 /// Writes every chart into `dir` and returns their paths.
-pub fn write_all(dir: &Path, run: &EvalRun) -> Result<Vec<PathBuf>, String> {
+pub fn write_all(dir: &Path, run: &EvalRun) -> anyhow::Result<Vec<PathBuf>> {
     std::fs::create_dir_all(dir).map_err(err(dir))?;
     let files = vec![
         reputations(&dir.join("reputations.svg"), run)?,
@@ -34,7 +35,7 @@ pub fn write_all(dir: &Path, run: &EvalRun) -> Result<Vec<PathBuf>, String> {
 }
 
 /// Reputation of every reporter after each round, with the end of the history marked.
-fn reputations(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
+fn reputations(path: &Path, run: &EvalRun) -> anyhow::Result<PathBuf> {
     let names = run.engine.reporters();
     let n = run.outcomes.len();
     let ymax = run
@@ -97,7 +98,7 @@ fn reputations(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
 }
 
 /// Reliability diagram of the fused posteriors on the scored rounds (10 equal-width bins).
-fn reliability(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
+fn reliability(path: &Path, run: &EvalRun) -> anyhow::Result<PathBuf> {
     let title = format!(
         "Reliability of fused posteriors, {} (ECE {:.4})",
         run.engine.method(),
@@ -106,7 +107,7 @@ fn reliability(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
     reliability_diagram(path, &title, &run.rows[0].scores)
 }
 
-fn reliability_diagram(path: &Path, title: &str, scores: &Scores) -> Result<PathBuf, String> {
+fn reliability_diagram(path: &Path, title: &str, scores: &Scores) -> anyhow::Result<PathBuf> {
     let root = SVGBackend::new(path, (640, 640)).into_drawing_area();
     root.fill(&WHITE).map_err(err(path))?;
     let mut chart = ChartBuilder::on(&root)
@@ -171,7 +172,7 @@ fn reliability_diagram(path: &Path, title: &str, scores: &Scores) -> Result<Path
 type Metric = fn(&vlmfuse_fusion::metrics::Scores) -> f64;
 
 /// Hamming, micro-F1 and macro-F1 of every row, side by side, like the paper's ablation figure.
-fn ablations(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
+fn ablations(path: &Path, run: &EvalRun) -> anyhow::Result<PathBuf> {
     let rows = &run.rows;
     let r = rows.len() as i32;
     let height = 140 + 34 * rows.len() as u32;
@@ -247,7 +248,7 @@ fn ablations(path: &Path, run: &EvalRun) -> Result<PathBuf, String> {
 /// The learning curve (`eval --curve`): Hamming, micro-F1 and macro-F1 of each method against
 /// the number of labelled history rounds, with the label-free baselines as horizontal lines; and
 /// a reliability diagram per method at the curve's last point.
-pub fn write_curve(dir: &Path, c: &CurveRun) -> Result<Vec<PathBuf>, String> {
+pub fn write_curve(dir: &Path, c: &CurveRun) -> anyhow::Result<Vec<PathBuf>> {
     std::fs::create_dir_all(dir).map_err(err(dir))?;
     let mut files = vec![curve(&dir.join("curve.svg"), c)?];
     for m in CURVE_METHODS {
@@ -266,7 +267,7 @@ pub fn write_curve(dir: &Path, c: &CurveRun) -> Result<Vec<PathBuf>, String> {
     Ok(files)
 }
 
-fn curve(path: &Path, c: &CurveRun) -> Result<PathBuf, String> {
+fn curve(path: &Path, c: &CurveRun) -> anyhow::Result<PathBuf> {
     // The N of the curve in the order asked, as categories (0 and 1,269 on one axis).
     let mut ns: Vec<usize> = Vec::new();
     for p in &c.points {
@@ -323,7 +324,7 @@ fn curve(path: &Path, c: &CurveRun) -> Result<PathBuf, String> {
             .draw()
             .map_err(err(path))?;
         let xmax = ns.len() as f64 - 0.7;
-        let mut hline = |name: String, v: f64, color: RGBColor| -> Result<(), String> {
+        let mut hline = |name: String, v: f64, color: RGBColor| -> anyhow::Result<()> {
             chart
                 .draw_series(LineSeries::new(
                     vec![(-0.3, v), (xmax, v)],

@@ -1,7 +1,7 @@
 #![allow(dead_code)]
 //! Shared test helpers: asset lookup with an explicit, never-silent skip.
 
-use vlmfuse_labeler::assets::{ensure_assets, AssetPaths, AssetsUnavailable};
+use vlmfuse_testkit::assets::{ensure_assets, AssetPaths, AssetsUnavailable};
 
 /// The fetched assets, running the fetch script when they are missing. Returns `None` (after
 /// saying why on stderr) only when the registry cannot be reached; any other problem fails the

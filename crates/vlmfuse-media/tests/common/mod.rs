@@ -3,23 +3,10 @@
 #![allow(dead_code)]
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use vlmfuse_media::Frame;
 
-/// Runs `ffmpeg -y <args>` and panics with its stderr on failure.
-pub fn ffmpeg(args: &[&str]) {
-    let out = Command::new("ffmpeg")
-        .args(["-hide_banner", "-loglevel", "error", "-nostdin", "-y"])
-        .args(args)
-        .output()
-        .expect("the ffmpeg CLI must be installed (scripts/setup-system.sh)");
-    assert!(
-        out.status.success(),
-        "ffmpeg {args:?} failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
+pub use vlmfuse_testkit::clips::ffmpeg;
 
 /// A moving test pattern whose colours also rotate over time, so frames a fraction of a
 /// second apart differ everywhere, not only in a few moving pixels.

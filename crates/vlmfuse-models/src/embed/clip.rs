@@ -47,16 +47,21 @@ impl Default for ClipVisionSettings {
 }
 
 impl ClipVisionSettings {
-    /// Reads either a full `CLIPConfig` (`vision_config` inside; the top-level `projection_dim`
-    /// applies when the vision part lacks one, as in older exports) or a bare
-    /// `CLIPVisionConfig` (`model_type = "clip_vision_model"`, fields at top level).
+    /// Reads either a full `CLIPConfig` (`vision_config` inside) or a bare `CLIPVisionConfig`
+    /// (`model_type = "clip_vision_model"`, fields at top level).
+    ///
+    /// In a full config the top-level `projection_dim` wins over `vision_config.projection_dim`,
+    /// because that is the one `CLIPModel` sizes `visual_projection` with; transformers writes
+    /// CLIPVisionConfig's default (512) inside `vision_config` whatever the model's projection
+    /// is. The vision part's value counts only when the top level has none (older exports),
+    /// and in a bare vision config (`CLIPVisionModelWithProjection`), where it is the real one.
     pub fn from_config_json(v: &serde_json::Value) -> Result<Self, ModelError> {
         let (mut part, top_proj) = match v.get("vision_config") {
             Some(vc) => (vc.clone(), v.get("projection_dim").cloned()),
             None => (v.clone(), None),
         };
         if let (Some(obj), Some(p)) = (part.as_object_mut(), top_proj) {
-            obj.entry("projection_dim").or_insert(p);
+            obj.insert("projection_dim".into(), p);
         }
         let s: Self = serde_json::from_value(part)
             .map_err(|e| ModelError::BadConfig(format!("CLIP vision_config: {e}")))?;
@@ -212,5 +217,38 @@ impl ContextEmbedder for ClipEmbedder {
             )));
         }
         Ok((mean / n as f64)?.to_vec1::<f32>()?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn top_level_projection_dim_wins_in_a_full_config() {
+        let full = json!({
+            "model_type": "clip",
+            "projection_dim": 768,
+            "vision_config": {"hidden_size": 1024, "num_attention_heads": 16, "projection_dim": 512}
+        });
+        let s = ClipVisionSettings::from_config_json(&full).unwrap();
+        assert_eq!((s.projection_dim, s.hidden_size), (768, 1024));
+
+        // Older exports: only the vision part says it, or only the top level.
+        let vision_only = json!({"vision_config": {"projection_dim": 256}});
+        let s = ClipVisionSettings::from_config_json(&vision_only).unwrap();
+        assert_eq!(s.projection_dim, 256);
+        let top_only = json!({"projection_dim": 640, "vision_config": {}});
+        let s = ClipVisionSettings::from_config_json(&top_only).unwrap();
+        assert_eq!(s.projection_dim, 640);
+
+        // A bare CLIPVisionConfig: its own value is the one.
+        let bare = json!({"model_type": "clip_vision_model", "projection_dim": 1024});
+        let s = ClipVisionSettings::from_config_json(&bare).unwrap();
+        assert_eq!(s.projection_dim, 1024);
+        // Neither: transformers' default.
+        let s = ClipVisionSettings::from_config_json(&json!({"vision_config": {}})).unwrap();
+        assert_eq!(s.projection_dim, 512);
     }
 }

@@ -5,18 +5,19 @@ pub mod candle_vlm;
 mod openai;
 
 pub use candle_vlm::{CandleVlmConfig, CandleVlmReporter, Generation, QwenVlEngine};
-pub use openai::{
-    shared_http_client, FrameFormat, OpenAiMode, OpenAiReporter, OpenAiReporterConfig,
-};
+pub use openai::{FrameFormat, OpenAiMode, OpenAiReporter, OpenAiReporterConfig};
 
 use std::panic::AssertUnwindSafe;
 use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use futures::future::BoxFuture;
 use futures::FutureExt;
 use serde::{Deserialize, Serialize};
+use vlmfuse_core::backend::panic_message;
+use vlmfuse_core::{BackendError, BackendPool};
 
 use crate::{Frame, ModelError};
 
@@ -70,10 +71,61 @@ pub struct ReporterOutput {
 /// together in one `Vec<Arc<dyn Reporter>>`.
 ///
 /// Implementations must not block the executor: `run_all` polls every reporter on one task, so a
-/// blocking forward pass inside the future would stall the others. Use `spawn_blocking`.
+/// blocking forward pass inside the future would stall the others. In-process models implement
+/// [`LocalReporter`] and get this trait from [`BackendPool`].
 pub trait Reporter: Send + Sync {
     fn name(&self) -> &str;
     fn run<'a>(&'a self, clip: &'a ClipInput) -> BoxFuture<'a, Result<ReporterOutput, ModelError>>;
+}
+
+/// An in-process VLM: generation blocks the calling thread for seconds. `cancel` is set when the
+/// round no longer waits (its timeout passed); a generation should stop at its next token.
+///
+/// Wrapped in a [`BackendPool`] it is a [`Reporter`]: queued clips wait in the pool's bounded
+/// queue (not on threads), one generation runs at a time per worker, and a timed-out round
+/// cancels its generation.
+pub trait LocalReporter: Send + Sync + 'static {
+    fn name(&self) -> &str;
+    fn generate(&self, clip: &ClipInput, cancel: &AtomicBool)
+        -> Result<ReporterOutput, ModelError>;
+}
+
+impl<B: LocalReporter + ?Sized> Reporter for BackendPool<B> {
+    fn name(&self) -> &str {
+        self.backend().name()
+    }
+
+    fn run<'a>(&'a self, clip: &'a ClipInput) -> BoxFuture<'a, Result<ReporterOutput, ModelError>> {
+        Box::pin(async move {
+            let t0 = Instant::now();
+            let clip = clip.clone();
+            match self.call(move |b, cancel| b.generate(&clip, cancel)).await {
+                Ok(out) => out.map(|o| ReporterOutput {
+                    // What the round waited, queue included.
+                    latency_ms: t0.elapsed().as_secs_f64() * 1e3,
+                    ..o
+                }),
+                // Re-raised so that `run_all` reports it as the panic it was.
+                Err(BackendError::Panicked { message, .. }) => {
+                    std::panic::resume_unwind(Box::new(message))
+                }
+                Err(e) => Err(e.into()),
+            }
+        })
+    }
+}
+
+/// A reporter with the time a round gives it (retries included) before it is left out.
+#[derive(Clone)]
+pub struct RoundReporter {
+    pub reporter: Arc<dyn Reporter>,
+    pub timeout: Duration,
+}
+
+impl RoundReporter {
+    pub fn new(reporter: Arc<dyn Reporter>, timeout: Duration) -> Self {
+        Self { reporter, timeout }
+    }
 }
 
 /// Why a reporter produced no output in a round.
@@ -100,17 +152,18 @@ impl ReporterFailure {
 
 /// Runs all reporters concurrently on `clip`, each under its own timeout. Never fails as a
 /// whole: each entry is `(reporter name, outcome)`, in the order of `reporters`. A timed-out
-/// reporter's future is dropped, which cancels its in-flight HTTP request.
+/// reporter's future is dropped, which cancels its in-flight HTTP request or its queued or
+/// running local generation.
 pub async fn run_all(
-    reporters: &[Arc<dyn Reporter>],
+    reporters: &[RoundReporter],
     clip: &ClipInput,
-    per_reporter_timeout: Duration,
 ) -> Vec<(String, Result<ReporterOutput, ReporterFailure>)> {
-    let futs = reporters.iter().map(|r| async move {
+    let futs = reporters.iter().map(|rr| async move {
+        let (r, timeout) = (&rr.reporter, rr.timeout);
         let name = r.name().to_string();
         let fut = AssertUnwindSafe(r.run(clip)).catch_unwind();
-        let res = match tokio::time::timeout(per_reporter_timeout, fut).await {
-            Err(_) => Err(ReporterFailure::TimedOut(per_reporter_timeout)),
+        let res = match tokio::time::timeout(timeout, fut).await {
+            Err(_) => Err(ReporterFailure::TimedOut(timeout)),
             Ok(Err(panic)) => Err(ReporterFailure::Panicked(panic_message(panic.as_ref()))),
             Ok(Ok(Err(e))) => Err(ReporterFailure::Failed(e)),
             Ok(Ok(Ok(o))) => Ok(o),
@@ -121,14 +174,4 @@ pub async fn run_all(
         (name, res)
     });
     futures::future::join_all(futs).await
-}
-
-fn panic_message(p: &(dyn std::any::Any + Send)) -> String {
-    if let Some(s) = p.downcast_ref::<&str>() {
-        s.to_string()
-    } else if let Some(s) = p.downcast_ref::<String>() {
-        s.clone()
-    } else {
-        "non-string panic payload".into()
-    }
 }

@@ -3,13 +3,14 @@
 //! e.g. vLLM + Qwen-VL) or as sampled frames in `image_url` parts (image-only VLMs).
 
 use std::path::Path;
-use std::sync::{Arc, OnceLock};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use base64::Engine as _;
 use futures::future::BoxFuture;
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
+use vlmfuse_core::chat::{ChatClient, RetryPolicy};
 
 use super::{ClipInput, Reporter, ReporterOutput, DEFAULT_PROMPT};
 use crate::{Frame, ModelError};
@@ -58,7 +59,8 @@ pub struct OpenAiReporterConfig {
     pub temperature: f32,
     /// Per HTTP attempt.
     pub timeout_s: f64,
-    /// Extra attempts after the first, on 408/429/5xx, connection errors and attempt timeouts.
+    /// Extra attempts after the first, on 408/429/5xx, connection errors and attempt timeouts
+    /// (the shared client's policy, [`RetryPolicy`]).
     pub retries: u32,
     /// Backoff before retry k (1-based) is `backoff_initial_ms * 2^(k-1)`, capped at
     /// `backoff_max_ms`. A `Retry-After` (seconds) replaces it, capped the same way so one
@@ -93,39 +95,26 @@ impl Default for OpenAiReporterConfig {
     }
 }
 
-/// One connection pool for every remote backend in the process: reporters and labelers often
-/// talk to the same vLLM, and per-reporter clients would each hold their own idle sockets.
-pub fn shared_http_client() -> reqwest::Client {
-    static CLIENT: OnceLock<reqwest::Client> = OnceLock::new();
-    CLIENT
-        .get_or_init(|| {
-            reqwest::Client::builder()
-                .connect_timeout(Duration::from_secs(10))
-                .pool_idle_timeout(Duration::from_secs(90))
-                .build()
-                .expect("reqwest client with default settings")
-        })
-        .clone()
-}
-
 pub struct OpenAiReporter {
     name: String,
     cfg: OpenAiReporterConfig,
-    endpoint: String,
-    api_key: Option<String>,
-    client: reqwest::Client,
+    client: ChatClient,
+}
+
+impl OpenAiReporterConfig {
+    /// The transport retry policy these fields describe.
+    pub fn retry_policy(&self) -> RetryPolicy {
+        RetryPolicy {
+            retries: self.retries,
+            backoff_initial: Duration::from_millis(self.backoff_initial_ms),
+            backoff_max: Duration::from_millis(self.backoff_max_ms),
+        }
+    }
 }
 
 impl OpenAiReporter {
     /// Reads the API key now, so a missing secret fails at startup rather than on the first clip.
     pub fn new(cfg: OpenAiReporterConfig) -> Result<Self, ModelError> {
-        Self::with_client(cfg, shared_http_client())
-    }
-
-    pub fn with_client(
-        cfg: OpenAiReporterConfig,
-        client: reqwest::Client,
-    ) -> Result<Self, ModelError> {
         if cfg.model.trim().is_empty() {
             return Err(ModelError::BadConfig(
                 "openai reporter: `model` is empty".into(),
@@ -149,17 +138,21 @@ impl OpenAiReporter {
                 }
             },
         };
+        let client = ChatClient::new(
+            &cfg.base_url,
+            api_key,
+            Duration::from_secs_f64(cfg.timeout_s),
+            cfg.retry_policy(),
+        );
         Ok(Self {
             name: cfg.name.clone().unwrap_or_else(|| cfg.model.clone()),
-            endpoint: chat_endpoint(&cfg.base_url),
-            api_key,
             client,
             cfg,
         })
     }
 
     pub fn endpoint(&self) -> &str {
-        &self.endpoint
+        self.client.endpoint()
     }
 
     /// The JSON request for `clip`. Encoding (base64 of the video, JPEG/PNG of frames) runs on
@@ -245,101 +238,12 @@ impl OpenAiReporter {
         let started = Instant::now();
         let body = serde_json::to_vec(&self.request_body(clip).await?)
             .map_err(|e| ModelError::InvalidInput(format!("request serialisation: {e}")))?;
-        let timeout = Duration::from_secs_f64(self.cfg.timeout_s);
-        let mut attempt: u32 = 0;
-        loop {
-            attempt += 1;
-            let mut req = self
-                .client
-                .post(&self.endpoint)
-                .timeout(timeout)
-                .header(reqwest::header::CONTENT_TYPE, "application/json")
-                .body(body.clone());
-            if let Some(k) = &self.api_key {
-                req = req.bearer_auth(k);
-            }
-            let can_retry = attempt <= self.cfg.retries;
-            let (err, retry_after) = match req.send().await {
-                Ok(resp) if resp.status().is_success() => {
-                    let v: Value = resp.json().await.map_err(|e| ModelError::BadResponse {
-                        endpoint: self.endpoint.clone(),
-                        message: format!("body is not JSON: {e}"),
-                    })?;
-                    let (text, model) =
-                        parse_chat_response(&v).map_err(|m| ModelError::BadResponse {
-                            endpoint: self.endpoint.clone(),
-                            message: m,
-                        })?;
-                    return Ok(ReporterOutput {
-                        text,
-                        latency_ms: started.elapsed().as_secs_f64() * 1e3,
-                        model: model.unwrap_or_else(|| self.cfg.model.clone()),
-                    });
-                }
-                Ok(resp) => {
-                    let status = resp.status().as_u16();
-                    let retry_after = resp
-                        .headers()
-                        .get(reqwest::header::RETRY_AFTER)
-                        .and_then(|h| h.to_str().ok())
-                        .and_then(|s| s.trim().parse::<f64>().ok())
-                        .filter(|s| s.is_finite() && *s >= 0.0)
-                        .map(Duration::from_secs_f64);
-                    let mut msg = resp.text().await.unwrap_or_default();
-                    truncate(&mut msg, 500);
-                    let err = ModelError::Remote {
-                        endpoint: self.endpoint.clone(),
-                        status: Some(status),
-                        attempts: attempt,
-                        message: msg,
-                    };
-                    if !(status == 408 || status == 429 || status >= 500) {
-                        return Err(err);
-                    }
-                    (err, retry_after)
-                }
-                Err(e) if e.is_timeout() => (
-                    ModelError::Timeout {
-                        what: format!("POST {} (attempt {attempt})", self.endpoint),
-                        after: timeout,
-                    },
-                    None,
-                ),
-                Err(e) if e.is_connect() || e.is_request() => (
-                    ModelError::Remote {
-                        endpoint: self.endpoint.clone(),
-                        status: None,
-                        attempts: attempt,
-                        message: error_chain(&e),
-                    },
-                    None,
-                ),
-                Err(e) => {
-                    return Err(ModelError::Remote {
-                        endpoint: self.endpoint.clone(),
-                        status: None,
-                        attempts: attempt,
-                        message: error_chain(&e),
-                    })
-                }
-            };
-            if !can_retry {
-                return Err(err);
-            }
-            let delay = self.backoff(attempt, retry_after);
-            tracing::debug!(reporter = %self.name, attempt, ?delay, error = %err, "retrying");
-            tokio::time::sleep(delay).await;
-        }
-    }
-
-    fn backoff(&self, attempt: u32, retry_after: Option<Duration>) -> Duration {
-        let max = Duration::from_millis(self.cfg.backoff_max_ms);
-        let exp = Duration::from_millis(
-            self.cfg
-                .backoff_initial_ms
-                .saturating_mul(1u64 << (attempt - 1).min(30)),
-        );
-        retry_after.unwrap_or(exp).min(max)
+        let reply = self.client.complete_bytes(body.into()).await?;
+        Ok(ReporterOutput {
+            text: reply.text,
+            latency_ms: started.elapsed().as_secs_f64() * 1e3,
+            model: reply.model.unwrap_or_else(|| self.cfg.model.clone()),
+        })
     }
 }
 
@@ -350,17 +254,6 @@ impl Reporter for OpenAiReporter {
 
     fn run<'a>(&'a self, clip: &'a ClipInput) -> BoxFuture<'a, Result<ReporterOutput, ModelError>> {
         Box::pin(self.run_inner(clip))
-    }
-}
-
-fn chat_endpoint(base: &str) -> String {
-    let b = base.trim_end_matches('/');
-    if b.ends_with("/chat/completions") {
-        b.to_string()
-    } else if b.ends_with("/v1") {
-        format!("{b}/chat/completions")
-    } else {
-        format!("{b}/v1/chat/completions")
     }
 }
 
@@ -409,109 +302,9 @@ fn frame_data_url(f: &Frame, fmt: FrameFormat, jpeg_quality: u8) -> Result<Strin
     ))
 }
 
-/// `choices[0].message.content` as a string (also accepting the list-of-parts form some servers
-/// return), plus the answering model's name.
-fn parse_chat_response(v: &Value) -> Result<(String, Option<String>), String> {
-    if let Some(err) = v.get("error") {
-        return Err(format!("error object in 2xx response: {err}"));
-    }
-    let content = v
-        .pointer("/choices/0/message/content")
-        .ok_or_else(|| "no choices[0].message.content".to_string())?;
-    let text = match content {
-        Value::String(s) => s.clone(),
-        Value::Array(parts) => parts
-            .iter()
-            .filter_map(|p| p.get("text").and_then(Value::as_str))
-            .collect::<Vec<_>>()
-            .join(""),
-        Value::Null => String::new(),
-        other => return Err(format!("content of unexpected type: {other}")),
-    };
-    if text.trim().is_empty() {
-        let reason = v
-            .pointer("/choices/0/finish_reason")
-            .and_then(Value::as_str)
-            .unwrap_or("?");
-        return Err(format!("empty completion (finish_reason {reason})"));
-    }
-    let model = v.get("model").and_then(Value::as_str).map(str::to_string);
-    Ok((text, model))
-}
-
-fn truncate(s: &mut String, max: usize) {
-    if s.len() > max {
-        let mut cut = max;
-        while !s.is_char_boundary(cut) {
-            cut -= 1;
-        }
-        s.truncate(cut);
-        s.push('…');
-    }
-}
-
-fn error_chain(e: &dyn std::error::Error) -> String {
-    let mut s = e.to_string();
-    let mut src = e.source();
-    while let Some(c) = src {
-        s.push_str(": ");
-        s.push_str(&c.to_string());
-        src = c.source();
-    }
-    s
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn endpoint_forms() {
-        assert_eq!(
-            chat_endpoint("http://h:8000"),
-            "http://h:8000/v1/chat/completions"
-        );
-        assert_eq!(
-            chat_endpoint("http://h:8000/v1/"),
-            "http://h:8000/v1/chat/completions"
-        );
-        assert_eq!(
-            chat_endpoint("http://h/v1/chat/completions"),
-            "http://h/v1/chat/completions"
-        );
-    }
-
-    #[test]
-    fn parse_response_forms() {
-        let v = json!({"model":"m","choices":[{"message":{"content":"hi"}}]});
-        assert_eq!(
-            parse_chat_response(&v).unwrap(),
-            ("hi".into(), Some("m".into()))
-        );
-        let v = json!({"choices":[{"message":{"content":[{"type":"text","text":"a"},{"type":"text","text":"b"}]}}]});
-        assert_eq!(parse_chat_response(&v).unwrap().0, "ab");
-        let v = json!({"choices":[{"message":{"content":null},"finish_reason":"length"}]});
-        assert!(parse_chat_response(&v).unwrap_err().contains("length"));
-        assert!(parse_chat_response(&json!({"choices":[]})).is_err());
-    }
-
-    #[test]
-    fn backoff_doubles_and_caps_and_honours_retry_after() {
-        let r = OpenAiReporter::new(OpenAiReporterConfig {
-            model: "m".into(),
-            backoff_initial_ms: 100,
-            backoff_max_ms: 1000,
-            ..Default::default()
-        })
-        .unwrap();
-        let ms = |d: Duration| d.as_millis();
-        assert_eq!(ms(r.backoff(1, None)), 100);
-        assert_eq!(ms(r.backoff(2, None)), 200);
-        assert_eq!(ms(r.backoff(3, None)), 400);
-        assert_eq!(ms(r.backoff(10, None)), 1000);
-        assert_eq!(ms(r.backoff(1, Some(Duration::from_millis(700)))), 700);
-        assert_eq!(ms(r.backoff(1, Some(Duration::from_secs(60)))), 1000);
-    }
 
     #[test]
     fn config_errors_are_clear() {
@@ -538,7 +331,7 @@ mod tests {
             width: 4,
             height: 2,
             rgb: (0..24).map(|i| (i * 10) as u8).collect(),
-            t_s: 0.0,
+            pts_s: 0.0,
         };
         let png = frame_data_url(&f, FrameFormat::Png, 90).unwrap();
         let b64 = png.strip_prefix("data:image/png;base64,").unwrap();

@@ -1,0 +1,54 @@
+//! The `vlmfuse` command line: one binary for the service (`serve`), the paper's evaluation
+//! protocol (`eval`) and the benchmarks (`bench`).
+
+use crate::{bench, config, eval, serve};
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+
+#[derive(Parser)]
+#[command(
+    name = "vlmfuse",
+    version,
+    about = "Shapley-credited, context-aware fusion of VLM reports"
+)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub cmd: Cmd,
+}
+
+#[derive(Subcommand)]
+pub enum Cmd {
+    /// Run the HTTP service.
+    Serve(Box<config::ServeArgs>),
+    /// Replay a rounds file under the paper's protocol and print the metrics table.
+    Eval(eval::EvalArgs),
+    /// Measure the engine (fuse-then-feedback per round, batched against per-query kNN).
+    Bench(bench::BenchArgs),
+}
+
+/// Parses the command line, runs the command, and prints an error with its causes.
+pub fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.cmd {
+        Cmd::Serve(args) => serve::run(*args),
+        Cmd::Eval(args) => eval::run(args),
+        Cmd::Bench(args) => bench::run(args),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    /// clap's own consistency checks (unique ids, valid defaults) over the whole command line.
+    #[test]
+    fn the_command_line_is_consistent() {
+        use clap::CommandFactory;
+        super::Cli::command().debug_assert();
+    }
+}

@@ -1,0 +1,142 @@
+//! `[media]`: what an upload to /v1/infer may be and how it is sampled.
+
+use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
+
+#[derive(clap::Args, Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MediaConfig {
+    /// Frames sampled uniformly per clip.
+    #[arg(
+        long = "media-frames",
+        id = "media-frames",
+        env = "VLMFUSE_MEDIA_FRAMES",
+        required = false
+    )]
+    pub frames: usize,
+    /// Frames are scaled so their shorter side is this many pixels (0: the clip's own size).
+    #[arg(
+        long = "media-frame-short-side",
+        id = "media-frame-short-side",
+        env = "VLMFUSE_MEDIA_FRAME_SHORT_SIDE",
+        required = false
+    )]
+    pub frame_short_side: u32,
+    /// Most `video` parts in one request.
+    #[arg(
+        long = "media-max-clips",
+        id = "media-max-clips",
+        env = "VLMFUSE_MEDIA_MAX_CLIPS",
+        required = false
+    )]
+    pub max_clips: usize,
+    /// Bytes per clip, enforced while streaming the upload (413 above).
+    #[arg(
+        long = "media-max-bytes",
+        id = "media-max-bytes",
+        env = "VLMFUSE_MEDIA_MAX_BYTES",
+        required = false
+    )]
+    pub max_bytes: u64,
+    /// Longest clip, seconds.
+    #[arg(
+        long = "media-max-duration-s",
+        id = "media-max-duration-s",
+        env = "VLMFUSE_MEDIA_MAX_DURATION_S",
+        required = false
+    )]
+    pub max_duration_s: f64,
+    /// Largest resolution (orientation-agnostic).
+    #[arg(
+        long = "media-max-width",
+        id = "media-max-width",
+        env = "VLMFUSE_MEDIA_MAX_WIDTH",
+        required = false
+    )]
+    pub max_width: u32,
+    #[arg(
+        long = "media-max-height",
+        id = "media-max-height",
+        env = "VLMFUSE_MEDIA_MAX_HEIGHT",
+        required = false
+    )]
+    pub max_height: u32,
+    /// Most frames decoded for one clip (decode work, which the byte size does not bound: a
+    /// 1 MB clip at 999 fps with one keyframe needs ~100k decodes); 422 above.
+    #[arg(
+        long = "media-max-frames-decoded",
+        id = "media-max-frames-decoded",
+        env = "VLMFUSE_MEDIA_MAX_FRAMES_DECODED",
+        required = false
+    )]
+    pub max_frames_decoded: u64,
+    /// FFmpeg decoder threads per clip; 0: one per core (at most 8). 1 is fastest for sampling
+    /// (short runs between seeks) while several clips decode at once.
+    #[arg(
+        long = "media-decode-threads",
+        id = "media-decode-threads",
+        env = "VLMFUSE_MEDIA_DECODE_THREADS",
+        required = false
+    )]
+    pub decode_threads: usize,
+    /// Seconds one /v1/infer request may take (replaces limits.request_timeout_s there).
+    #[arg(
+        long = "media-request-timeout-s",
+        id = "media-request-timeout-s",
+        env = "VLMFUSE_MEDIA_REQUEST_TIMEOUT_S",
+        required = false
+    )]
+    pub request_timeout_s: f64,
+    /// Where uploads are spooled; unset: the system temporary directory.
+    #[arg(
+        long = "media-temp-dir",
+        id = "media-temp-dir",
+        env = "VLMFUSE_MEDIA_TEMP_DIR",
+        required = false
+    )]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub temp_dir: Option<PathBuf>,
+}
+
+impl Default for MediaConfig {
+    fn default() -> Self {
+        let l = vlmfuse_media::MediaLimits::default();
+        Self {
+            frames: 8,
+            frame_short_side: 448,
+            max_clips: 4,
+            max_bytes: l.max_bytes,
+            max_duration_s: l.max_duration_s,
+            max_width: l.max_width,
+            max_height: l.max_height,
+            max_frames_decoded: l.max_frames_decoded,
+            decode_threads: l.decode_threads,
+            request_timeout_s: 300.0,
+            temp_dir: None,
+        }
+    }
+}
+
+impl MediaConfig {
+    pub fn limits(&self) -> vlmfuse_media::MediaLimits {
+        vlmfuse_media::MediaLimits {
+            max_bytes: self.max_bytes,
+            max_duration_s: self.max_duration_s,
+            max_width: self.max_width,
+            max_height: self.max_height,
+            max_frames_decoded: self.max_frames_decoded,
+            decode_threads: self.decode_threads,
+        }
+    }
+
+    pub fn sample_options(&self) -> vlmfuse_media::SampleOptions {
+        vlmfuse_media::SampleOptions {
+            frames: self.frames,
+            size: if self.frame_short_side == 0 {
+                vlmfuse_media::FrameSize::Native
+            } else {
+                vlmfuse_media::FrameSize::ShortSide(self.frame_short_side)
+            },
+        }
+    }
+}

@@ -1,0 +1,66 @@
+//! `[server]` and `[limits]`: where the service listens, where its state lives, who may write,
+//! and how much one client may ask of it.
+
+use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
+
+pub const DEFAULT_LISTEN: &str = "127.0.0.1:8080";
+pub const DEFAULT_DATA_DIR: &str = "./data";
+
+#[derive(clap::Args, Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ServerConfig {
+    /// Address to listen on [default: 127.0.0.1:8080].
+    #[arg(long, env = "VLMFUSE_LISTEN", required = false)]
+    pub listen: String,
+    /// Directory of the embedded database [default: ./data].
+    #[arg(long, env = "VLMFUSE_DATA_DIR", required = false)]
+    pub data_dir: PathBuf,
+    /// Bearer token required on the writing routes (/v1/fuse, /v1/infer, /v1/feedback); unset
+    /// leaves them open (a loopback default). An empty variable means no key.
+    #[arg(
+        long,
+        env = "VLMFUSE_API_KEY",
+        hide_env_values = true,
+        required = false
+    )]
+    pub api_key: Option<String>,
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        Self {
+            listen: DEFAULT_LISTEN.into(),
+            data_dir: DEFAULT_DATA_DIR.into(),
+            api_key: None,
+        }
+    }
+}
+
+#[derive(clap::Args, Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Limits {
+    /// Largest request body in bytes (413 above).
+    #[arg(long, env = "VLMFUSE_MAX_BODY_BYTES", required = false)]
+    pub max_body_bytes: usize,
+    /// Requests in flight on the /v1 routes before new ones get 429.
+    #[arg(long, env = "VLMFUSE_CONCURRENCY_LIMIT", required = false)]
+    pub concurrency_limit: usize,
+    /// Seconds before a request is answered 503 (timeout).
+    #[arg(long, env = "VLMFUSE_REQUEST_TIMEOUT_S", required = false)]
+    pub request_timeout_s: f64,
+    /// Most rounds in one `{"rounds": [...]}` request to /v1/fuse.
+    #[arg(long, env = "VLMFUSE_MAX_BATCH_ROUNDS", required = false)]
+    pub max_batch_rounds: usize,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Self {
+            max_body_bytes: 8 * 1024 * 1024,
+            concurrency_limit: 512,
+            request_timeout_s: 30.0,
+            max_batch_rounds: 1024,
+        }
+    }
+}

@@ -1,0 +1,139 @@
+use super::*;
+use vlmfuse_models::WeightSource;
+const SHIPPED: &str = include_str!("../../../../config/default.toml");
+
+#[test]
+fn the_shipped_file_equals_the_builtin_defaults() {
+    let file = Config::from_toml(SHIPPED).unwrap();
+    assert_eq!(file, Config::default());
+}
+
+#[test]
+fn the_shipped_file_sets_every_field() {
+    // Every key the defaults serialise must appear in the file, so the file documents all.
+    let defaults = toml::Value::try_from(Config::default()).unwrap();
+    let file: toml::Value = toml::from_str(SHIPPED).unwrap();
+    fn keys(v: &toml::Value, prefix: &str, out: &mut Vec<String>) {
+        if let toml::Value::Table(t) = v {
+            for (k, v) in t {
+                let p = format!("{prefix}{k}");
+                out.push(p.clone());
+                keys(v, &format!("{p}."), out);
+            }
+        }
+    }
+    let (mut a, mut b) = (Vec::new(), Vec::new());
+    keys(&defaults, "", &mut a);
+    keys(&file, "", &mut b);
+    for k in a {
+        assert!(b.contains(&k), "config/default.toml does not set {k}");
+    }
+}
+
+#[test]
+fn flags_override_the_file_and_typos_are_refused() {
+    let args =
+        ServeArgs::try_parse_from(["serve", "--listen", "127.0.0.1:9", "--reporters", "a, b"])
+            .unwrap();
+    let cfg = Config::load(&args).unwrap();
+    assert_eq!(cfg.server.listen, "127.0.0.1:9");
+    assert_eq!(cfg.reporters, vec!["a", "b"]);
+    assert!(Config::from_toml("reporter = [\"a\"]").is_err());
+    assert!(Config::from_toml("[fusion]\nkk = 3").is_err());
+    assert!(Config::from_toml("[server]\nlisten = \"nowhere\"").is_err());
+}
+
+/// A flag replaces the file's value; a flag that is not given leaves the file's value alone
+/// (it does not fall back to the built-in default).
+#[test]
+fn flags_layer_over_the_file_field_by_field() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("c.toml");
+    std::fs::write(
+        &file,
+        "[limits]\nconcurrency_limit = 7\nmax_batch_rounds = 9\n\n[media]\nframes = 3\n\n\
+         [embedder]\nweights = { path = \"/m\" }\n",
+    )
+    .unwrap();
+    let f = file.to_str().unwrap();
+    let args = ServeArgs::try_parse_from([
+        "serve",
+        "--config",
+        f,
+        "--max-batch-rounds",
+        "2",
+        "--embedder-device",
+        "cuda:1",
+    ])
+    .unwrap();
+    let cfg = Config::load(&args).unwrap();
+    assert_eq!(cfg.limits.concurrency_limit, 7);
+    assert_eq!(cfg.limits.max_batch_rounds, 2);
+    assert_eq!(cfg.media.frames, 3);
+    assert_eq!(cfg.media.max_clips, MediaConfig::default().max_clips);
+    let e = cfg.embedder.unwrap();
+    assert_eq!(
+        (e.weights, e.device.as_str()),
+        (WeightSource::local("/m"), "cuda:1")
+    );
+    // A bad value names the flag; an invalid combination is refused after layering.
+    let e = ServeArgs::try_parse_from(["serve", "--media-frames", "x"]).unwrap_err();
+    assert!(e.to_string().contains("--media-frames"), "{e}");
+    let args = ServeArgs::try_parse_from(["serve", "--media-frames", "0"]).unwrap();
+    assert!(Config::load(&args).is_err());
+}
+
+/// The labeler is one tagged table: a field of another kind is refused, not ignored.
+#[test]
+fn the_labeler_section_is_a_tagged_enum() {
+    let cfg = Config::from_toml("[labeler]\nkind = \"gguf\"\nmodel_path = \"/m.gguf\"").unwrap();
+    assert_eq!(
+        cfg.labeler,
+        LabelerConfig::Gguf(GgufLabelerConfig {
+            model_path: Some("/m.gguf".into()),
+            threshold: None
+        })
+    );
+    assert!(Config::from_toml("[labeler]\nkind = \"gguf\"\nbase_url = \"http://x\"").is_err());
+    assert!(Config::from_toml("[labeler]\nkind = \"nope\"").is_err());
+}
+
+/// The commented examples of config/default.toml, uncommented, are a valid config.
+#[test]
+fn the_commented_pipeline_examples_parse() {
+    let mut text = String::new();
+    let mut on = false;
+    for line in SHIPPED.lines() {
+        if line.starts_with("# [embedder]") {
+            on = true;
+        }
+        if line.starts_with("# Text -> labels") {
+            on = false;
+        }
+        if on {
+            if let Some(rest) = line.strip_prefix("# ") {
+                let toml_line = rest.starts_with('[') || rest.contains(" = ");
+                if toml_line && !rest.starts_with('#') {
+                    text.push_str(rest);
+                    text.push('\n');
+                }
+            }
+        }
+    }
+    let text = format!("reporters = [\"vlaad\", \"videollama2\"]\n{text}");
+    let cfg = Config::from_toml(&text).unwrap_or_else(|e| panic!("{e}\n{text}"));
+    assert_eq!(cfg.reporter.len(), 2);
+    assert_eq!(cfg.reporter[0].name(), "videollama2");
+    assert_eq!(cfg.reporter[0].round_timeout_s, 180.0);
+    match &cfg.reporter[1].backend {
+        ReporterBackend::Candle(c) => {
+            assert_eq!(c.device, "cuda:1");
+            assert!(c.adapter.is_some());
+        }
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(cfg.embedder.unwrap().device, "cpu");
+    // A reporter whose name is not in `reporters` is refused.
+    let bad = text.replace("name = \"vlaad\"", "name = \"nobody\"");
+    assert!(Config::from_toml(&bad).is_err());
+}

@@ -1,0 +1,108 @@
+//! Route handlers: read the request, call the service, write the answer. No logic of their own.
+
+use super::error::ApiError;
+use super::AppState;
+use axum::extract::{FromRequest, Request, State};
+use axum::http::{header, HeaderMap, HeaderValue};
+use axum::response::{IntoResponse, Response};
+use serde::Deserialize;
+use serde_json::Value;
+
+/// `axum::Json`, but a body it cannot read becomes an [`ApiError`] (JSON, counted), never axum's
+/// plain-text rejection.
+#[derive(FromRequest)]
+#[from_request(via(axum::Json), rejection(ApiError))]
+pub struct ApiJson<T>(pub T);
+
+/// `POST /v1/fuse`: one SPEC §8 round (without truth) or `{"rounds": [...]}`.
+pub async fn fuse(
+    State(st): State<AppState>,
+    ApiJson(body): ApiJson<Value>,
+) -> Result<Response, ApiError> {
+    let out = st.service.fuse(body).await?;
+    Ok(if out.batch {
+        axum::Json(crate::wire::FuseBatchOut { rounds: out.rounds }).into_response()
+    } else {
+        axum::Json(out.rounds.into_iter().next().expect("one round")).into_response()
+    })
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FeedbackIn {
+    round_id: String,
+    labels: Vec<String>,
+}
+
+/// `POST /v1/feedback`: labels a fused round; idempotent per round.
+pub async fn feedback(
+    State(st): State<AppState>,
+    ApiJson(body): ApiJson<FeedbackIn>,
+) -> Result<Response, ApiError> {
+    let (out, repeated) = st.service.feedback(body.round_id, &body.labels).await?;
+    let mut resp = axum::Json(out).into_response();
+    if repeated {
+        resp.headers_mut()
+            .insert("x-vlmfuse-repeated", HeaderValue::from_static("true"));
+    }
+    Ok(resp)
+}
+
+/// `GET /v1/state`.
+pub async fn state(State(st): State<AppState>) -> Response {
+    axum::Json(st.service.state()).into_response()
+}
+
+/// `GET /v1/ontology`.
+pub async fn ontology(State(st): State<AppState>) -> Response {
+    axum::Json(st.service.ontology()).into_response()
+}
+
+/// `GET /healthz`: the process answers.
+pub async fn healthz() -> Response {
+    axum::Json(serde_json::json!({"status": "ok"})).into_response()
+}
+
+/// `GET /readyz`: every configured component is loaded, or a 503 that lists what is not.
+pub async fn readyz(State(st): State<AppState>) -> Result<Response, ApiError> {
+    let r = st.service.readiness()?;
+    Ok(axum::Json(serde_json::json!({
+        "status": "ready",
+        "components": r.components,
+        // /v1/infer needs an embedder, reporters and a labeler; what the config leaves out.
+        "infer": {"ready": r.infer_blockers.is_empty(), "not_ready": r.infer_blockers},
+    }))
+    .into_response())
+}
+
+/// `GET /metrics`: Prometheus text.
+pub async fn metrics(State(st): State<AppState>) -> Response {
+    let mut h = HeaderMap::new();
+    h.insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static("text/plain; version=0.0.4; charset=utf-8"),
+    );
+    (h, st.service.metrics().render()).into_response()
+}
+
+pub const OPENAPI: &str = include_str!("../../../../openapi.yaml");
+
+/// `GET /openapi.yaml`: the contract at the repository root, compiled in.
+pub async fn openapi() -> Response {
+    (
+        [(
+            header::CONTENT_TYPE,
+            HeaderValue::from_static("application/yaml"),
+        )],
+        OPENAPI,
+    )
+        .into_response()
+}
+
+pub async fn not_found(req: Request) -> ApiError {
+    ApiError::NotFound(format!("{} {}", req.method(), req.uri().path()))
+}
+
+pub async fn method_not_allowed() -> ApiError {
+    ApiError::MethodNotAllowed
+}

@@ -1,0 +1,262 @@
+//! The HTTP edge of `vlmfuse serve` (SPEC §9): the route table, its middleware (authentication,
+//! the concurrency limit, timeouts, metrics) and [`app`], which builds the router over a
+//! [`Service`]. Handlers read the request and call the service; `error` turns failures into
+//! statuses, in one place.
+
+pub mod error;
+mod handlers;
+mod infer;
+
+pub use error::ApiError;
+pub use handlers::OPENAPI;
+
+use crate::service::Service;
+use axum::extract::{DefaultBodyLimit, MatchedPath, Request, State};
+use axum::http::header::AUTHORIZATION;
+use axum::middleware::{from_fn, from_fn_with_state, Next};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post, MethodRouter};
+use axum::Router;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio::sync::Semaphore;
+
+/// What every handler sees.
+#[derive(Clone)]
+pub struct AppState {
+    pub service: Arc<Service>,
+    limiter: Arc<Semaphore>,
+}
+
+impl AppState {
+    pub fn new(service: Arc<Service>) -> Self {
+        let limiter = Arc::new(Semaphore::new(service.config().limits.concurrency_limit));
+        Self { service, limiter }
+    }
+}
+
+/// Who may call a route.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Access {
+    /// Probes and documents: never limited, never authenticated.
+    Open,
+    /// Reads under the concurrency limit.
+    Limited,
+    /// Writes: bearer token (when configured), then the concurrency limit.
+    Write,
+}
+
+/// How large a body a route takes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BodyLimit {
+    /// `limits.max_body_bytes` (413 above).
+    Json,
+    /// Uploads streamed to disk with their own limits (`media.max_bytes` per clip,
+    /// `media.max_clips`), so the JSON limit does not apply.
+    Streamed,
+}
+
+/// Which timeout a route runs under.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TimeoutClass {
+    /// `limits.request_timeout_s`.
+    Request,
+    /// `media.request_timeout_s`: a clip goes through decoding and every model.
+    Clip,
+}
+
+/// One row of the route table: the path, its handler and its policy.
+pub struct RouteDef {
+    /// Lower-case, as OpenAPI spells it; the handler already carries the method, so only the
+    /// route-table test reads this.
+    #[cfg_attr(not(test), allow(dead_code))]
+    pub method: &'static str,
+    pub path: &'static str,
+    pub access: Access,
+    pub body: BodyLimit,
+    pub timeout: TimeoutClass,
+    pub handler: MethodRouter<AppState>,
+}
+
+/// The route table: the router is built from it and a test holds it equal to openapi.yaml.
+pub fn routes() -> Vec<RouteDef> {
+    use handlers as h;
+    use Access::*;
+    let r = |method, path, access, handler| RouteDef {
+        method,
+        path,
+        access,
+        body: BodyLimit::Json,
+        timeout: TimeoutClass::Request,
+        handler,
+    };
+    vec![
+        r("post", "/v1/fuse", Write, post(h::fuse)),
+        RouteDef {
+            body: BodyLimit::Streamed,
+            timeout: TimeoutClass::Clip,
+            ..r("post", "/v1/infer", Write, post(infer::infer))
+        },
+        r("post", "/v1/feedback", Write, post(h::feedback)),
+        r("get", "/v1/state", Limited, get(h::state)),
+        r("get", "/v1/ontology", Limited, get(h::ontology)),
+        r("get", "/healthz", Open, get(h::healthz)),
+        r("get", "/readyz", Open, get(h::readyz)),
+        r("get", "/metrics", Open, get(h::metrics)),
+        r("get", "/openapi.yaml", Open, get(h::openapi)),
+    ]
+}
+
+/// The router over a service: every route of [`routes`] with its policy applied.
+pub fn app(state: AppState) -> Router {
+    let cfg = state.service.config();
+    let mut app = Router::new();
+    for def in routes() {
+        let mut handler = def.handler;
+        // route_layer: the last added runs first, so authentication precedes the limit and an
+        // unauthenticated flood cannot take the slots; the timeout covers both.
+        if def.access != Access::Open {
+            handler = handler.route_layer(from_fn_with_state(state.clone(), limit));
+        }
+        if def.access == Access::Write {
+            handler = handler.route_layer(from_fn_with_state(state.clone(), auth));
+        }
+        let secs = match def.timeout {
+            TimeoutClass::Request => cfg.limits.request_timeout_s,
+            TimeoutClass::Clip => cfg.media.request_timeout_s,
+        };
+        handler = handler.route_layer(from_fn_with_state(secs, timeout));
+        handler = handler.layer(match def.body {
+            BodyLimit::Json => DefaultBodyLimit::max(cfg.limits.max_body_bytes),
+            BodyLimit::Streamed => DefaultBodyLimit::disable(),
+        });
+        app = app.route(def.path, handler);
+    }
+    app.fallback(handlers::not_found)
+        .method_not_allowed_fallback(handlers::method_not_allowed)
+        .layer(from_fn(track))
+        .layer(from_fn_with_state(state.clone(), scope_metrics))
+        .with_state(state)
+}
+
+/// Everything a request does runs with this service's metrics recorder in force.
+async fn scope_metrics(State(st): State<AppState>, req: Request, next: Next) -> Response {
+    let metrics = st.service.metrics().clone();
+    metrics.instrument(next.run(req)).await
+}
+
+/// TEI's pattern: a full server answers 429 at once instead of queueing without bound.
+async fn limit(State(st): State<AppState>, req: Request, next: Next) -> Result<Response, ApiError> {
+    let Ok(permit) = st.limiter.clone().try_acquire_owned() else {
+        metrics::counter!("vlmfuse_overload_total").increment(1);
+        return Err(ApiError::Overloaded(
+            st.service.config().limits.concurrency_limit,
+        ));
+    };
+    let resp = next.run(req).await;
+    drop(permit);
+    Ok(resp)
+}
+
+async fn auth(State(st): State<AppState>, req: Request, next: Next) -> Result<Response, ApiError> {
+    if let Some(key) = &st.service.config().server.api_key {
+        let given = req
+            .headers()
+            .get(AUTHORIZATION)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.strip_prefix("Bearer "));
+        if !given.is_some_and(|t| constant_time_eq(t.as_bytes(), key.as_bytes())) {
+            return Err(ApiError::Unauthorized);
+        }
+    }
+    Ok(next.run(req).await)
+}
+
+/// Compares without an early exit, so response time does not reveal a matching prefix.
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    if a.len() != b.len() {
+        return false;
+    }
+    a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+async fn timeout(State(secs): State<f64>, req: Request, next: Next) -> Response {
+    match tokio::time::timeout(Duration::from_secs_f64(secs), next.run(req)).await {
+        Ok(resp) => resp,
+        Err(_) => ApiError::Timeout(secs).into_response(),
+    }
+}
+
+/// Per-route request count and latency, labelled by the route pattern (not the raw path, which
+/// would make one series per round id).
+async fn track(req: Request, next: Next) -> Response {
+    let route = req
+        .extensions()
+        .get::<MatchedPath>()
+        .map(|m| m.as_str().to_string())
+        .unwrap_or_else(|| "unmatched".into());
+    let method = req.method().as_str().to_string();
+    let start = Instant::now();
+    let resp = next.run(req).await;
+    let status = resp.status().as_u16().to_string();
+    metrics::histogram!("vlmfuse_http_request_duration_seconds", "route" => route.clone(), "method" => method.clone())
+        .record(start.elapsed().as_secs_f64());
+    metrics::counter!("vlmfuse_http_requests_total", "route" => route, "method" => method, "status" => status)
+        .increment(1);
+    resp
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::BTreeSet;
+
+    /// Fails when a route is in the router but not in openapi.yaml, or the reverse.
+    #[test]
+    fn routes_and_openapi_agree() {
+        let doc: serde_norway::Value = serde_norway::from_str(OPENAPI).unwrap();
+        let paths = doc["paths"].as_mapping().expect("paths");
+        let mut spec = BTreeSet::new();
+        for (path, ops) in paths {
+            for (method, _) in ops.as_mapping().expect("operations") {
+                let m = method.as_str().unwrap();
+                if ["get", "post", "put", "patch", "delete", "head", "options"].contains(&m) {
+                    spec.insert((m.to_string(), path.as_str().unwrap().to_string()));
+                }
+            }
+        }
+        let code: BTreeSet<(String, String)> = routes()
+            .iter()
+            .map(|r| (r.method.to_string(), r.path.to_string()))
+            .collect();
+        assert_eq!(code, spec, "router (left) and openapi.yaml (right) differ");
+    }
+
+    /// Every operation documents the statuses its access class can produce.
+    #[test]
+    fn openapi_lists_the_middleware_statuses() {
+        let doc: serde_norway::Value = serde_norway::from_str(OPENAPI).unwrap();
+        for r in routes() {
+            let op = &doc["paths"][r.path][r.method]["responses"];
+            let has = |code: &str| op.get(code).is_some();
+            if r.access != Access::Open {
+                assert!(
+                    has("429") && has("503"),
+                    "{} {} lacks 429/503",
+                    r.method,
+                    r.path
+                );
+            }
+            if r.access == Access::Write {
+                assert!(has("401"), "{} {} lacks 401", r.method, r.path);
+            }
+        }
+    }
+
+    #[test]
+    fn constant_time_eq_compares() {
+        assert!(constant_time_eq(b"abc", b"abc"));
+        assert!(!constant_time_eq(b"abc", b"abd"));
+        assert!(!constant_time_eq(b"abc", b"ab"));
+    }
+}

@@ -1,0 +1,245 @@
+//! `/v1/infer`'s work once the clips are on disk: decode and sample → context embedding →
+//! reporters in parallel → labeler → the /v1/fuse store path. Blocking steps run off the async
+//! threads: decoding on the blocking pool, the models on their own workers.
+
+use super::{Service, ServiceError};
+use crate::wire::{ClipOut, InferClipOut, Ordered, ReporterOut};
+use serde_json::{json, Value};
+use std::collections::BTreeMap;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use vlmfuse_fusion::RoundRecord;
+use vlmfuse_models::{ClipInput, ClipMeta};
+
+/// One uploaded clip, spooled to a temporary file that is removed when this is dropped.
+pub struct Upload {
+    pub file: tempfile::NamedTempFile,
+    pub file_name: Option<String>,
+    pub bytes: u64,
+    pub upload_ms: f64,
+}
+
+/// What `/v1/infer` answers: one entry per clip, and whether the request was a batch.
+pub struct Inferred {
+    pub clips: Vec<InferClipOut>,
+    pub batch: bool,
+}
+
+/// A clip that went through every stage up to fusion.
+struct Processed {
+    record: RoundRecord,
+    request: Value,
+    reporters: Vec<(String, ReporterOut)>,
+    failed: Vec<(String, String)>,
+    clip: ClipOut,
+    timings: Vec<(String, f64)>,
+}
+
+/// Records a stage's time in `vlmfuse_stage_seconds` and returns it in milliseconds.
+pub(crate) fn stage(name: &'static str, start: Instant) -> f64 {
+    let s = start.elapsed().as_secs_f64();
+    metrics::histogram!("vlmfuse_stage_seconds", "stage" => name).record(s);
+    s * 1e3
+}
+
+impl Service {
+    /// Refuses `/v1/infer` before its upload is read when a component it needs is missing.
+    pub fn check_infer_ready(&self) -> Result<(), ServiceError> {
+        let pipeline = &self.pipeline;
+        let blockers = pipeline.infer_blockers();
+        if blockers.is_empty() {
+            return Ok(());
+        }
+        let what = if pipeline.not_configured.is_empty() {
+            "not ready"
+        } else {
+            "not configured"
+        };
+        Err(ServiceError::NotReady {
+            message: format!(
+                "clip ingestion is {what}: {}; POST /v1/fuse still takes reports with a context",
+                blockers.join("; ")
+            ),
+            not_ready: blockers,
+        })
+    }
+
+    /// Processes every clip, then fuses and stores them together (all or nothing).
+    pub async fn infer(&self, uploads: Vec<Upload>) -> Result<Inferred, ServiceError> {
+        self.check_infer_ready()?;
+        let batch = uploads.len() > 1;
+        let mut processed = Vec::with_capacity(uploads.len());
+        for up in &uploads {
+            processed.push(self.process(up).await?);
+        }
+        let records = processed
+            .iter_mut()
+            .map(|p| (p.record.clone(), std::mem::take(&mut p.request)))
+            .collect();
+        let fuse_start = Instant::now();
+        let fused = self.fuse_and_store(records, batch).await?;
+        let fuse_ms = stage("fuse", fuse_start);
+        drop(uploads);
+
+        let clips = fused
+            .into_iter()
+            .zip(processed)
+            .map(|(fused, p)| {
+                let mut timings = p.timings;
+                timings.push(("fuse".into(), fuse_ms));
+                InferClipOut {
+                    fused,
+                    reporters: Ordered(p.reporters),
+                    failed: Ordered(p.failed),
+                    clip: p.clip,
+                    timings_ms: Ordered(timings),
+                }
+            })
+            .collect();
+        Ok(Inferred { clips, batch })
+    }
+
+    /// Decode, embed, report and label one clip.
+    async fn process(&self, up: &Upload) -> Result<Processed, ServiceError> {
+        let p = &self.pipeline;
+        let media = &self.cfg.media;
+        let mut timings = vec![("upload".to_string(), up.upload_ms)];
+
+        let start = Instant::now();
+        let path = up.file.path().to_path_buf();
+        let (opts, limits) = (media.sample_options(), media.limits());
+        let decode_path = path.clone();
+        // The decode stops at the request's deadline, and as soon as this future is dropped
+        // (client gone, request timeout): the guard cancels it, so no thread keeps decoding for
+        // an abandoned request.
+        let interrupt = match Duration::try_from_secs_f64(media.request_timeout_s) {
+            Ok(timeout) => vlmfuse_media::Interrupt::with_timeout(timeout),
+            Err(_) => vlmfuse_media::Interrupt::new(),
+        };
+        let _stop_on_drop = interrupt.cancel_on_drop();
+        let decoded = tokio::task::spawn_blocking(move || {
+            vlmfuse_media::sample_frames_with_interrupt(&decode_path, &opts, &limits, &interrupt)
+        })
+        .await
+        .map_err(|e| ServiceError::Internal(format!("decoding task failed: {e}")))??;
+        timings.push(("decode".into(), stage("decode", start)));
+        let info = decoded.info.clone();
+        let clip = ClipOut {
+            file_name: up.file_name.clone(),
+            bytes: up.bytes,
+            info: info.clone(),
+            timestamps_s: decoded.timestamps(),
+        };
+        let frames: Arc<[vlmfuse_models::Frame]> =
+            decoded.frames.into_iter().map(|f| f.frame).collect();
+
+        let start = Instant::now();
+        let embedder = p.embedder.clone().expect("checked before");
+        let context = embedder
+            .embed(frames.clone())
+            .await
+            .map_err(ServiceError::Embedder)?;
+        timings.push(("embed".into(), stage("embed", start)));
+
+        let start = Instant::now();
+        let input = ClipInput {
+            path,
+            frames,
+            meta: ClipMeta {
+                clip_id: up.file_name.clone(),
+                duration_s: Some(info.duration_s),
+                fps: Some(info.fps),
+                width: Some(info.width),
+                height: Some(info.height),
+            },
+        };
+        let runs = vlmfuse_models::run_all(&p.reporters, &input).await;
+        timings.push(("reporters".into(), stage("reporters", start)));
+
+        let start = Instant::now();
+        let labeler = p.labeler.clone().expect("checked before");
+        let mut failed = p.unloaded_reporters.clone();
+        let mut answered = Vec::new();
+        for (name, res) in runs {
+            match res {
+                Ok(out) => answered.push((name, out)),
+                Err(e) => {
+                    metrics::counter!("vlmfuse_reporter_failures_total", "reporter" => name.clone(), "stage" => "run")
+                        .increment(1);
+                    failed.push((name, format!("{}: {e}", e.kind())));
+                }
+            }
+        }
+        let labelled = futures::future::join_all(answered.into_iter().map(|(name, out)| {
+            let labeler = labeler.clone();
+            async move {
+                let t = Instant::now();
+                let res = labeler.label(&out.text).await;
+                (name, out, res, t.elapsed().as_secs_f64() * 1e3)
+            }
+        }))
+        .await;
+        timings.push(("label".into(), stage("label", start)));
+
+        let mut reports = BTreeMap::new();
+        let mut reporters = Vec::new();
+        let mut raw = serde_json::Map::new();
+        for (name, out, res, label_ms) in labelled {
+            match res {
+                Ok(l) => {
+                    reports.insert(name.clone(), l.labels.clone());
+                    raw.insert(
+                        name.clone(),
+                        json!({"text": out.text, "labels": l.labels, "latency_ms": out.latency_ms,
+                               "model": out.model}),
+                    );
+                    reporters.push((
+                        name,
+                        ReporterOut {
+                            text: out.text,
+                            labels: l.labels,
+                            latency_ms: out.latency_ms,
+                            label_ms,
+                            labeler: p.labeler_name.clone(),
+                        },
+                    ));
+                }
+                Err(e) => {
+                    metrics::counter!("vlmfuse_reporter_failures_total", "reporter" => name.clone(), "stage" => "label")
+                        .increment(1);
+                    failed.push((name, format!("labeling failed: {e}")));
+                }
+            }
+        }
+        if reports.is_empty() {
+            return Err(ServiceError::ReportersFailed(failed));
+        }
+        // Keep the configured order in `failed` whatever finished first.
+        let order = |n: &str| self.cfg.reporters.iter().position(|r| r == n);
+        failed.sort_by_key(|(n, _)| order(n));
+        reporters.sort_by_key(|(n, _)| order(n));
+
+        let request = json!({
+            "id": up.file_name,
+            "reports": reports,
+            "source": "infer",
+            "clip": clip,
+            "raw": raw,
+            "failed": failed.iter().cloned().collect::<BTreeMap<_, _>>(),
+            "labeler": p.labeler_name,
+        });
+        Ok(Processed {
+            record: RoundRecord {
+                id: up.file_name.clone(),
+                context: context.into_iter().map(f64::from).collect(),
+                reports,
+                truth: None,
+            },
+            request,
+            reporters,
+            failed,
+            clip,
+            timings,
+        })
+    }
+}

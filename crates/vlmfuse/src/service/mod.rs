@@ -1,0 +1,208 @@
+//! The service layer: what `vlmfuse serve` does, with no HTTP in it. It owns the engine (in
+//! memory, behind an `RwLock`), the single writer thread that is the only code changing it, and
+//! the clip pipeline; it takes requests already read off the wire and answers with the shapes of
+//! [`crate::wire`] or a [`ServiceError`]. The HTTP layer (`crate::http`) reads requests, calls
+//! these methods and maps errors to statuses.
+//!
+//! Reads (`fuse` inference, `state`) take the engine's read lock; the writer ([`writer`]) is the
+//! only code that takes the write lock. The database (vlmfuse-store) is the truth the engine is
+//! rebuilt from on start.
+
+mod error;
+mod fuse;
+mod infer;
+pub mod pipeline;
+pub mod writer;
+
+pub use error::ServiceError;
+pub use fuse::Fused;
+pub(crate) use infer::stage;
+pub use infer::{Inferred, Upload};
+pub use pipeline::Pipeline;
+
+use crate::config::Config;
+use crate::telemetry::Metrics;
+use crate::wire::{state_out, OntologyOut, StateOut};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{mpsc, Arc, Mutex, RwLock};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+use vlmfuse_fusion::Engine;
+use vlmfuse_store::{Identity, Store};
+use writer::{Cmd, Shared};
+
+/// Hooks that only tests set: they let a test make a request slow deterministically (to fill the
+/// concurrency limit, to pass a timeout) without a knob in the production configuration.
+#[derive(Default)]
+pub struct TestHooks {
+    fuse_delay_ms: AtomicU64,
+}
+
+impl TestHooks {
+    /// Every `/v1/fuse` sleeps this long before it starts.
+    pub fn set_fuse_delay(&self, d: Duration) {
+        self.fuse_delay_ms
+            .store(d.as_millis() as u64, Ordering::Relaxed);
+    }
+
+    fn fuse_delay(&self) -> Duration {
+        Duration::from_millis(self.fuse_delay_ms.load(Ordering::Relaxed))
+    }
+}
+
+/// What `/readyz` reports when nothing is broken.
+pub struct Readiness {
+    pub components: Vec<String>,
+    /// Why `/v1/infer` cannot run (empty when it can).
+    pub infer_blockers: Vec<String>,
+}
+
+pub struct Service {
+    shared: Arc<Shared>,
+    tx: mpsc::Sender<Cmd>,
+    cfg: Arc<Config>,
+    pipeline: Arc<Pipeline>,
+    metrics: Metrics,
+    hooks: TestHooks,
+}
+
+impl Service {
+    /// Opens the store, rebuilds the engine from it, loads the clip pipeline and starts the
+    /// writer. The writer thread ends once every handle to the service is dropped, after
+    /// committing what is queued; join the returned handle to wait for that.
+    pub async fn start(
+        cfg: Arc<Config>,
+        metrics: Metrics,
+    ) -> anyhow::Result<(Service, JoinHandle<()>)> {
+        use anyhow::Context;
+        let start = Instant::now();
+        let mut engine = Engine::new(
+            cfg.fusion.clone(),
+            cfg.ontology.clone(),
+            cfg.reporters.clone(),
+        )
+        .context("fusion engine")?;
+        let mut store = Store::open(&cfg.server.data_dir)?;
+        store.check_identity(&Identity {
+            reporters: cfg.reporters.clone(),
+            labels: cfg.ontology.ids().map(str::to_string).collect(),
+        })?;
+        let loaded = store
+            .load_engine(&mut engine)
+            .with_context(|| format!("rebuilding the engine from {}", store.path().display()))?;
+        tracing::info!(
+            rounds = loaded.rounds,
+            labelled = loaded.labelled,
+            secs = start.elapsed().as_secs_f64(),
+            db = %store.path().display(),
+            "state rebuilt from the database"
+        );
+        metrics.scope(|| writer::publish_gauges(&engine));
+        let shared = Arc::new(Shared {
+            engine: RwLock::new(engine),
+            rounds: AtomicU64::new(loaded.next_seq),
+            broken: AtomicBool::new(false),
+            broken_reason: Mutex::new(None),
+        });
+
+        let start = Instant::now();
+        let pipeline = Pipeline::load(&cfg).await;
+        tracing::info!(
+            embedder = pipeline.embedder.is_some(),
+            reporters = pipeline.reporters.len(),
+            labeler = %pipeline.labeler_name,
+            secs = start.elapsed().as_secs_f64(),
+            "clip pipeline loaded"
+        );
+        let (tx, writer) =
+            writer::spawn(store, shared.clone(), metrics.clone()).context("writer thread")?;
+        Ok((
+            Service {
+                shared,
+                tx,
+                cfg,
+                pipeline: Arc::new(pipeline),
+                metrics,
+                hooks: TestHooks::default(),
+            },
+            writer,
+        ))
+    }
+
+    pub fn config(&self) -> &Config {
+        &self.cfg
+    }
+
+    pub fn metrics(&self) -> &Metrics {
+        &self.metrics
+    }
+
+    /// Test-only hooks (see [`TestHooks`]).
+    pub fn test_hooks(&self) -> &TestHooks {
+        &self.hooks
+    }
+
+    fn send(&self, cmd: Cmd) -> Result<(), ServiceError> {
+        if self.shared.broken.load(Ordering::SeqCst) {
+            return Err(ServiceError::NotReady {
+                message: "the service refuses writes; see /readyz".into(),
+                not_ready: self.not_ready(),
+            });
+        }
+        self.tx.send(cmd).map_err(|_| ServiceError::NotReady {
+            message: "the writer has stopped".into(),
+            not_ready: vec!["store: writer stopped".into()],
+        })
+    }
+
+    /// Components that are configured but not ready, each with its reason (a failed load of
+    /// the embedder, a reporter or the labeler is listed here).
+    pub fn not_ready(&self) -> Vec<String> {
+        let mut out = Vec::new();
+        if self.shared.broken.load(Ordering::SeqCst) {
+            out.push(format!("store: {}", self.shared.broken_reason()));
+        }
+        out.extend(self.pipeline.failed.iter().cloned());
+        out
+    }
+
+    /// `/readyz`: the loaded components, or what is not ready.
+    pub fn readiness(&self) -> Result<Readiness, ServiceError> {
+        let not_ready = self.not_ready();
+        if !not_ready.is_empty() {
+            return Err(ServiceError::NotReady {
+                message: format!("not ready: {}", not_ready.join("; ")),
+                not_ready,
+            });
+        }
+        let p = &self.pipeline;
+        let mut components = vec!["store".to_string(), "engine".to_string()];
+        if p.embedder.is_some() {
+            components.push("embedder".into());
+        }
+        for r in &p.reporters {
+            components.push(format!("reporter {}", r.reporter.name()));
+        }
+        if p.labeler.is_some() {
+            components.push(format!("labeler {}", p.labeler_name));
+        }
+        Ok(Readiness {
+            components,
+            infer_blockers: p.infer_blockers(),
+        })
+    }
+
+    /// `GET /v1/state`.
+    pub fn state(&self) -> StateOut {
+        let eng = self.shared.engine.read().unwrap_or_else(|e| e.into_inner());
+        state_out(&eng, self.shared.rounds.load(Ordering::SeqCst))
+    }
+
+    /// `GET /v1/ontology`.
+    pub fn ontology(&self) -> OntologyOut {
+        let eng = self.shared.engine.read().unwrap_or_else(|e| e.into_inner());
+        OntologyOut {
+            labels: eng.ontology().labels().to_vec(),
+        }
+    }
+}

@@ -1,0 +1,303 @@
+//! The single writer: one OS thread owns the SQLite write connection and is the only code that
+//! changes the engine. Commands arrive on a channel in arrival order, so feedback is applied one
+//! at a time in that order and the service's results equal a sequential replay.
+//!
+//! Rounds from `/v1/fuse` that are queued together are stored in one transaction (group commit):
+//! with `synchronous=FULL` every commit is an fsync, and sharing it is what lets fuse throughput
+//! exceed the disk's sync rate. Each feedback commits on its own, because its credit depends on the
+//! reputations that the previous feedback left.
+//!
+//! A feedback holds the engine's write lock only for `apply` (microseconds); the credit is computed
+//! under a read lock and the commit under no lock, so fuse requests keep running meanwhile.
+
+use super::ServiceError;
+use crate::telemetry::Metrics;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::mpsc;
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::Instant;
+use tokio::sync::oneshot;
+use vlmfuse_fusion::{Engine, FusionError, LabelledRound};
+use vlmfuse_store::{parse_round_id, NewRound, Store, StoredFeedback};
+
+/// Most commands taken off the queue into one group.
+const MAX_GROUP: usize = 256;
+
+pub enum Cmd {
+    /// Store rounds; replies with the first `seq` (the rest follow consecutively).
+    Insert {
+        rounds: Vec<NewRound>,
+        reply: oneshot::Sender<Result<u64, ServiceError>>,
+    },
+    /// Label a round; `truth` is already validated against the ontology.
+    Feedback {
+        round_id: String,
+        truth: Vec<u8>,
+        reply: oneshot::Sender<Result<FeedbackDone, ServiceError>>,
+    },
+}
+
+/// An acknowledged feedback (committed), new or repeated.
+pub struct FeedbackDone {
+    pub round_id: String,
+    pub feedback: StoredFeedback,
+    /// The round's coalition (reporter indices).
+    pub coalition: Vec<usize>,
+    /// True when this repeats an earlier feedback with the same labels.
+    pub repeated: bool,
+}
+
+/// What the handlers share with the writer.
+pub struct Shared {
+    pub engine: RwLock<Engine>,
+    /// Rounds stored so far (the next `seq`).
+    pub rounds: AtomicU64,
+    /// Set when the writer stopped or left the engine behind the database; the service then
+    /// refuses writes and `/readyz` says why.
+    pub broken: AtomicBool,
+    pub broken_reason: Mutex<Option<String>>,
+}
+
+impl Shared {
+    /// Why writes are refused (empty while they are not).
+    pub fn broken_reason(&self) -> String {
+        self.broken_reason
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone()
+            .unwrap_or_default()
+    }
+
+    pub fn mark_broken(&self, why: String) {
+        tracing::error!("writer broken: {why}");
+        *self.broken_reason.lock().unwrap_or_else(|e| e.into_inner()) = Some(why);
+        self.broken.store(true, Ordering::SeqCst);
+    }
+}
+
+/// Publishes the engine's gauges (reputations, labelled rounds, threshold).
+pub fn publish_gauges(engine: &Engine) {
+    for (name, w) in engine.reporters().iter().zip(engine.reputations()) {
+        metrics::gauge!("vlmfuse_reputation", "reporter" => name.clone()).set(*w);
+    }
+    metrics::gauge!("vlmfuse_labelled_rounds").set(engine.labelled() as f64);
+    metrics::gauge!("vlmfuse_threshold").set(engine.threshold().scalar());
+}
+
+pub fn spawn(
+    mut store: Store,
+    shared: Arc<Shared>,
+    metrics: Metrics,
+) -> std::io::Result<(mpsc::Sender<Cmd>, std::thread::JoinHandle<()>)> {
+    let (tx, rx) = mpsc::channel::<Cmd>();
+    let handle = std::thread::Builder::new()
+        .name("vlmfuse-writer".into())
+        .spawn(move || {
+            let res = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                metrics.scope(|| run(&mut store, &shared, rx))
+            }));
+            match res {
+                Ok(()) => tracing::info!("writer stopped: every queued write is committed"),
+                Err(_) => shared.mark_broken("the writer thread panicked".into()),
+            }
+        })?;
+    Ok((tx, handle))
+}
+
+fn run(store: &mut Store, shared: &Shared, rx: mpsc::Receiver<Cmd>) {
+    let mut dim = shared
+        .engine
+        .read()
+        .unwrap_or_else(|e| e.into_inner())
+        .dim();
+    while let Ok(first) = rx.recv() {
+        let mut group = vec![first];
+        while group.len() < MAX_GROUP {
+            match rx.try_recv() {
+                Ok(c) => group.push(c),
+                Err(_) => break,
+            }
+        }
+        let mut inserts = Vec::new();
+        for cmd in group {
+            match cmd {
+                Cmd::Insert { rounds, reply } => inserts.push((rounds, reply)),
+                Cmd::Feedback {
+                    round_id,
+                    truth,
+                    reply,
+                } => {
+                    // Rounds queued before this feedback are committed first: arrival order.
+                    flush_inserts(store, shared, &mut dim, std::mem::take(&mut inserts));
+                    let res = if shared.broken.load(Ordering::SeqCst) {
+                        Err(broken_error(shared))
+                    } else {
+                        feedback(store, shared, &round_id, truth)
+                    };
+                    let _ = reply.send(res);
+                }
+            }
+        }
+        flush_inserts(store, shared, &mut dim, inserts);
+    }
+}
+
+fn broken_error(shared: &Shared) -> ServiceError {
+    let why = shared.broken_reason();
+    ServiceError::NotReady {
+        message: format!("the service refuses writes: {why}"),
+        not_ready: vec![format!("store: {why}")],
+    }
+}
+
+type InsertCmd = (Vec<NewRound>, oneshot::Sender<Result<u64, ServiceError>>);
+
+fn flush_inserts(
+    store: &mut Store,
+    shared: &Shared,
+    dim: &mut Option<usize>,
+    cmds: Vec<InsertCmd>,
+) {
+    if cmds.is_empty() {
+        return;
+    }
+    if shared.broken.load(Ordering::SeqCst) {
+        for (_, reply) in cmds {
+            let _ = reply.send(Err(broken_error(shared)));
+        }
+        return;
+    }
+    // A request whose contexts disagree with the dimension in force is refused alone; the
+    // handler has already checked against the engine, so this only catches two first requests
+    // of different dimensions racing each other.
+    let before = *dim;
+    let mut accepted: Vec<InsertCmd> = Vec::with_capacity(cmds.len());
+    for (rounds, reply) in cmds {
+        // The handler made every round of one request the same dimension.
+        let d = rounds.first().map(|r| r.round.context.len()).unwrap_or(0);
+        let bad = match *dim {
+            Some(e) if e != d => Some(FusionError::Dimension {
+                expected: e,
+                got: d,
+            }),
+            Some(_) => None,
+            None => {
+                *dim = Some(d);
+                None
+            }
+        };
+        match bad {
+            Some(e) => {
+                let _ = reply.send(Err(e.into()));
+            }
+            None => accepted.push((rounds, reply)),
+        }
+    }
+    let first_seq = shared.rounds.load(Ordering::SeqCst);
+    let all: Vec<NewRound> = accepted
+        .iter()
+        .flat_map(|(r, _)| r.iter().cloned())
+        .collect();
+    if all.is_empty() {
+        return;
+    }
+    match store.insert_rounds(first_seq, &all) {
+        Ok(()) => {
+            if before.is_none() {
+                if let Some(d) = *dim {
+                    let mut eng = shared.engine.write().unwrap_or_else(|e| e.into_inner());
+                    if let Err(e) = eng.fix_dim(d) {
+                        shared.mark_broken(format!("engine refused the stored dimension: {e}"));
+                    }
+                }
+            }
+            shared
+                .rounds
+                .store(first_seq + all.len() as u64, Ordering::SeqCst);
+            metrics::counter!("vlmfuse_rounds_stored_total").increment(all.len() as u64);
+            let mut seq = first_seq;
+            for (rounds, reply) in accepted {
+                let _ = reply.send(Ok(seq));
+                seq += rounds.len() as u64;
+            }
+        }
+        Err(e) => {
+            *dim = before;
+            let msg = e.to_string();
+            for (_, reply) in accepted {
+                let _ = reply.send(Err(ServiceError::NotStored(msg.clone())));
+            }
+        }
+    }
+}
+
+fn feedback(
+    store: &mut Store,
+    shared: &Shared,
+    round_id: &str,
+    truth: Vec<u8>,
+) -> Result<FeedbackDone, ServiceError> {
+    let start = Instant::now();
+    let unknown = || ServiceError::UnknownRound(round_id.to_string());
+    let seq = parse_round_id(round_id).ok_or_else(unknown)?;
+    if seq >= shared.rounds.load(Ordering::SeqCst) {
+        return Err(unknown());
+    }
+    let stored = store.round(seq)?.ok_or_else(unknown)?;
+    let coalition = stored.round.coalition();
+    if let Some(prev) = store.feedback(seq)? {
+        if prev.truth == truth {
+            return Ok(FeedbackDone {
+                round_id: round_id.to_string(),
+                feedback: prev,
+                coalition,
+                repeated: true,
+            });
+        }
+        let eng = shared.engine.read().unwrap_or_else(|e| e.into_inner());
+        return Err(ServiceError::Conflict(format!(
+            "round {round_id} was already labelled {:?}; feedback is final per round",
+            eng.ontology().decode(&prev.truth)
+        )));
+    }
+    let (outcome, labelled_order) = {
+        let eng = shared.engine.read().unwrap_or_else(|e| e.into_inner());
+        let o = eng.credit(
+            &stored.inference.signals,
+            &stored.inference.w_used,
+            &truth,
+            seq,
+        );
+        (o, eng.labelled())
+    };
+    let fb = StoredFeedback {
+        seq,
+        labelled_order,
+        truth,
+        outcome,
+    };
+    store.insert_feedback(std::slice::from_ref(&fb))?;
+    // Committed: from here the database holds the feedback, so the engine must follow.
+    {
+        let mut eng = shared.engine.write().unwrap_or_else(|e| e.into_inner());
+        let lr = LabelledRound {
+            seq,
+            round: stored.round,
+            truth: fb.truth.clone(),
+            q: stored.inference.q,
+        };
+        if let Err(e) = eng.apply(&lr, Some(&fb.outcome)) {
+            shared.mark_broken(format!(
+                "feedback for {round_id} committed but could not be applied ({e}); restart to rebuild"
+            ));
+        }
+        publish_gauges(&eng);
+    }
+    metrics::histogram!("vlmfuse_feedback_duration_seconds").record(start.elapsed().as_secs_f64());
+    Ok(FeedbackDone {
+        round_id: round_id.to_string(),
+        feedback: fb,
+        coalition,
+        repeated: false,
+    })
+}

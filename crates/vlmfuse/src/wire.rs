@@ -1,0 +1,248 @@
+//! The JSON shapes of the API's answers (`openapi.yaml`'s schemas), built by the service and
+//! serialised by the HTTP layer. Names (reporters, labels) appear only here: the engine and the
+//! store speak indices.
+
+use crate::service::writer::FeedbackDone;
+use serde::{Serialize, Serializer};
+use vlmfuse_fusion::{Engine, Inference, Label, ReporterStats, ShapleyMethod, ThresholdMode};
+use vlmfuse_store::round_id;
+
+/// A JSON object whose keys keep the order given (ontology or reporter order), which
+/// `BTreeMap` would sort away.
+pub struct Ordered<T>(pub Vec<(String, T)>);
+
+impl<T: Serialize> Serialize for Ordered<T> {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_map(self.0.iter().map(|(k, v)| (k, v)))
+    }
+}
+
+#[derive(Serialize)]
+pub struct LabelExplanationOut {
+    /// Contextual prior `pi_k`.
+    pub prior: f64,
+    /// Each present reporter's weighted, guardrailed LLR `w_i * lambda~_ik`.
+    pub contributions: Ordered<f64>,
+    /// `logit(pi_k) + sum of contributions`: the posterior before the sigmoid.
+    pub logit: f64,
+}
+
+#[derive(Serialize)]
+pub struct FuseOut {
+    pub round_id: String,
+    /// The client's `id`, echoed when given.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub id: Option<String>,
+    pub labels: Vec<String>,
+    pub posteriors: Ordered<f64>,
+    pub threshold: f64,
+    /// Per-label thresholds, only in the per-label threshold mode.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub thresholds: Option<Ordered<f64>>,
+    pub coalition: Vec<String>,
+    pub missing: Vec<String>,
+    /// The reputations used for this round (all configured reporters).
+    pub reputations: Ordered<f64>,
+    pub explanation: Ordered<LabelExplanationOut>,
+}
+
+#[derive(Serialize)]
+pub struct FuseBatchOut {
+    pub rounds: Vec<FuseOut>,
+}
+
+pub fn fuse_out(engine: &Engine, seq: u64, id: Option<String>, inf: &Inference) -> FuseOut {
+    let reporters = engine.reporters();
+    let ontology = engine.ontology();
+    let label = |k: usize| ontology.id(k).to_string();
+    let l = ontology.len();
+    let present = &inf.signals.coalition;
+    let explanation = engine
+        .explain(inf)
+        .into_iter()
+        .enumerate()
+        .map(|(k, e)| {
+            (
+                label(k),
+                LabelExplanationOut {
+                    prior: e.prior,
+                    contributions: Ordered(
+                        e.contributions
+                            .iter()
+                            .map(|&(i, v)| (reporters[i].clone(), v))
+                            .collect(),
+                    ),
+                    logit: e.logit,
+                },
+            )
+        })
+        .collect();
+    FuseOut {
+        round_id: round_id(seq),
+        id,
+        labels: ontology.decode(&inf.pred),
+        posteriors: Ordered((0..l).map(|k| (label(k), inf.q[k])).collect()),
+        threshold: inf.thresholds.first().copied().unwrap_or(0.5),
+        thresholds: (engine.threshold().mode() == ThresholdMode::PerLabel)
+            .then(|| Ordered((0..l).map(|k| (label(k), inf.thresholds[k])).collect())),
+        coalition: present.iter().map(|&i| reporters[i].clone()).collect(),
+        missing: (0..reporters.len())
+            .filter(|i| !present.contains(i))
+            .map(|i| reporters[i].clone())
+            .collect(),
+        reputations: Ordered(
+            reporters
+                .iter()
+                .cloned()
+                .zip(inf.w_used.iter().copied())
+                .collect(),
+        ),
+        explanation: Ordered(explanation),
+    }
+}
+
+#[derive(Serialize)]
+pub struct FeedbackOut {
+    pub round_id: String,
+    pub labels: Vec<String>,
+    /// Shapley value of each reporter present in the round.
+    pub shapley: Ordered<f64>,
+    pub shapley_method: &'static str,
+    /// Standard error of each sampled Shapley value (sampled method only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub shapley_std_error: Option<Ordered<f64>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub shapley_samples: Option<usize>,
+    /// `v(N)`: the coalition's log-score gain over the prior (the sum of the Shapley values).
+    pub value: f64,
+    pub reputations_before: Ordered<f64>,
+    pub reputations: Ordered<f64>,
+    pub labelled_rounds: u64,
+}
+
+pub fn feedback_out(engine: &Engine, done: &FeedbackDone) -> FeedbackOut {
+    let names = engine.reporters();
+    let o = &done.feedback.outcome;
+    let members = |v: &[f64]| {
+        Ordered(
+            done.coalition
+                .iter()
+                .zip(v)
+                .map(|(&i, &x)| (names[i].clone(), x))
+                .collect(),
+        )
+    };
+    let all = |v: &[f64]| Ordered(names.iter().cloned().zip(v.iter().copied()).collect());
+    let (se, samples) = match &o.credit.method {
+        ShapleyMethod::Sampled { samples, std_error } => (Some(members(std_error)), Some(*samples)),
+        _ => (None, None),
+    };
+    FeedbackOut {
+        round_id: done.round_id.clone(),
+        labels: engine.ontology().decode(&done.feedback.truth),
+        shapley: members(&o.credit.phi),
+        shapley_method: o.credit.method.name(),
+        shapley_std_error: se,
+        shapley_samples: samples,
+        value: o.credit.v_full,
+        reputations_before: all(&o.w_before),
+        reputations: all(&o.w_after),
+        labelled_rounds: done.feedback.labelled_order + 1,
+    }
+}
+
+/// `GET /v1/state`.
+#[derive(Serialize)]
+pub struct StateOut {
+    pub reputations: Ordered<f64>,
+    pub labelled_rounds: u64,
+    pub threshold: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub thresholds: Option<Ordered<f64>>,
+    pub reporters: Ordered<ReporterStats>,
+    /// Rounds fused and stored (labelled or not).
+    pub rounds: u64,
+    /// Context dimension in force; null until the first round.
+    pub dim: Option<usize>,
+}
+
+/// `GET /v1/ontology`.
+#[derive(Serialize)]
+pub struct OntologyOut {
+    pub labels: Vec<Label>,
+}
+
+/// `POST /v1/infer`, per clip.
+#[derive(Serialize)]
+pub struct ReporterOut {
+    pub text: String,
+    pub labels: Vec<String>,
+    pub latency_ms: f64,
+    pub label_ms: f64,
+    pub labeler: String,
+}
+
+#[derive(Serialize, Clone)]
+pub struct ClipOut {
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub file_name: Option<String>,
+    pub bytes: u64,
+    /// What the header says: container, codec, duration, size, fps, keyframe spacing.
+    #[serde(flatten)]
+    pub info: vlmfuse_media::ClipInfo,
+    /// Presentation times of the sampled frames, seconds.
+    pub timestamps_s: Vec<f64>,
+}
+
+#[derive(Serialize)]
+pub struct InferClipOut {
+    #[serde(flatten)]
+    pub fused: FuseOut,
+    pub reporters: Ordered<ReporterOut>,
+    /// Reporters left out of this round, with why.
+    pub failed: Ordered<String>,
+    pub clip: ClipOut,
+    pub timings_ms: Ordered<f64>,
+}
+
+#[derive(Serialize)]
+pub struct InferBatchOut {
+    pub clips: Vec<InferClipOut>,
+}
+
+pub fn state_out(eng: &Engine, rounds: u64) -> StateOut {
+    let names = eng.reporters();
+    let l = eng.ontology().len();
+    StateOut {
+        reputations: Ordered(
+            names
+                .iter()
+                .cloned()
+                .zip(eng.reputations().iter().copied())
+                .collect(),
+        ),
+        labelled_rounds: eng.labelled(),
+        threshold: eng.threshold().scalar(),
+        thresholds: (eng.threshold().mode() == ThresholdMode::PerLabel).then(|| {
+            Ordered(
+                (0..l)
+                    .map(|k| {
+                        (
+                            eng.ontology().id(k).to_string(),
+                            eng.threshold().thresholds()[k],
+                        )
+                    })
+                    .collect(),
+            )
+        }),
+        reporters: Ordered(
+            names
+                .iter()
+                .cloned()
+                .zip(eng.stats().iter().cloned())
+                .collect(),
+        ),
+        rounds,
+        dim: eng.dim(),
+    }
+}

@@ -1,0 +1,7 @@
+//! The tests that need the real `vlmfuse` binary: `kill -9` and SIGTERM, and `vlmfuse eval`'s
+//! command line. Everything else runs in-process (the `service` tests).
+
+mod eval_cli;
+mod replay;
+mod shutdown;
+mod support;

@@ -1,0 +1,303 @@
+//! The service (the real binary) against `vlmfuse eval`: replaying a rounds file through `/v1/fuse` then
+//! `/v1/feedback` must give eval's posteriors and reputations (SPEC §9's sequential protocol),
+//! and a `kill -9` in the middle followed by a restart must lose nothing acknowledged and continue
+//! with bit-identical numbers.
+
+use crate::support::*;
+use serde_json::{json, Value};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use vlmfuse_testkit::rounds::{generate_rounds, read_jsonl, sorted_reporters, write_jsonl};
+
+/// The lead's realistic file when present, else a generated one.
+fn rounds(tmp: &Path) -> (Vec<Value>, PathBuf) {
+    let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/rounds.jsonl");
+    let rounds = if shipped.exists() {
+        read_jsonl(&shipped)
+    } else {
+        generate_rounds(300, 32, 7)
+    };
+    let path = tmp.join("rounds.jsonl");
+    write_jsonl(&path, &rounds);
+    (rounds, path)
+}
+
+fn eval(file: &Path, out: &Path) -> Vec<Value> {
+    let o = Command::new(BIN)
+        .args([
+            "eval",
+            file.to_str().unwrap(),
+            "--split",
+            "0",
+            "--quiet",
+            "--emit-rounds",
+        ])
+        .arg(out)
+        .env_remove("VLMFUSE_CONFIG")
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "eval failed: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    read_jsonl(out)
+}
+
+/// What the service said about one round.
+#[derive(Debug, Clone, PartialEq)]
+struct Seen {
+    fuse: Value,
+    feedback: Option<Value>,
+}
+
+fn without_truth(r: &Value) -> Value {
+    let mut r = r.clone();
+    r.as_object_mut().unwrap().remove("truth");
+    r
+}
+
+fn truth(r: &Value) -> Option<Value> {
+    r.get("truth").filter(|t| !t.is_null()).cloned()
+}
+
+/// Where an interrupted replay got to.
+#[derive(Default)]
+struct Progress {
+    seen: Vec<Seen>,
+    /// A round whose fuse was acknowledged (`round_id`, answer) but whose feedback was not.
+    pending: Option<(String, Value)>,
+}
+
+/// Replays the rounds not yet seen; stops at the first transport error (the server died) and
+/// returns false.
+fn replay(addr: &str, rounds: &[Value], prog: &mut Progress) -> bool {
+    while prog.seen.len() < rounds.len() {
+        let i = prog.seen.len();
+        let r = &rounds[i];
+        let (round_id, fuse) = match prog.pending.take() {
+            Some(p) => p,
+            None => {
+                let Ok(resp) = try_post(addr, "/v1/fuse", &without_truth(r)) else {
+                    return false;
+                };
+                assert_eq!(
+                    resp.status,
+                    200,
+                    "round {i}: {}",
+                    String::from_utf8_lossy(&resp.body)
+                );
+                let v = resp.json();
+                (v["round_id"].as_str().unwrap().to_string(), v)
+            }
+        };
+        let mut feedback = None;
+        if let Some(t) = truth(r) {
+            let Ok(resp) = try_post(
+                addr,
+                "/v1/feedback",
+                &json!({"round_id": round_id, "labels": t}),
+            ) else {
+                prog.pending = Some((round_id, fuse));
+                return false;
+            };
+            assert_eq!(
+                resp.status,
+                200,
+                "round {i}: {}",
+                String::from_utf8_lossy(&resp.body)
+            );
+            feedback = Some(resp.json());
+        }
+        prog.seen.push(Seen { fuse, feedback });
+    }
+    true
+}
+
+fn close(a: f64, b: f64, what: &str) {
+    assert!((a - b).abs() <= 1e-12, "{what}: service {a} vs eval {b}");
+}
+
+fn num(v: &Value) -> f64 {
+    v.as_f64().unwrap_or_else(|| panic!("not a number: {v}"))
+}
+
+/// The service's answers against eval's emitted rounds.
+fn compare_with_eval(seen: &[Seen], emitted: &[Value]) {
+    assert_eq!(seen.len(), emitted.len());
+    for (i, (s, e)) in seen.iter().zip(emitted).enumerate() {
+        let f = &s.fuse;
+        for (label, q) in e["q"].as_object().unwrap() {
+            close(
+                num(&f["posteriors"][label]),
+                num(q),
+                &format!("round {i} q[{label}]"),
+            );
+        }
+        close(
+            num(&f["threshold"]),
+            num(&e["threshold"]),
+            &format!("round {i} threshold"),
+        );
+        for (name, w) in e["w_used"].as_object().unwrap() {
+            close(
+                num(&f["reputations"][name]),
+                num(w),
+                &format!("round {i} w_used[{name}]"),
+            );
+        }
+        let t = num(&e["threshold"]);
+        let near_threshold = e["q"]
+            .as_object()
+            .unwrap()
+            .values()
+            .any(|q| (num(q) - t).abs() < 1e-9);
+        if !near_threshold {
+            assert_eq!(f["labels"], e["pred"], "round {i} labels");
+        }
+        match (&s.feedback, e["phi"].as_object()) {
+            (None, None) => {
+                for (name, w) in e["w_after"].as_object().unwrap() {
+                    close(
+                        num(&f["reputations"][name]),
+                        num(w),
+                        &format!("round {i} w_after[{name}]"),
+                    );
+                }
+            }
+            (Some(fb), Some(phi)) => {
+                for (name, p) in phi {
+                    let got = fb["shapley"].get(name).map(num).unwrap_or(0.0);
+                    close(got, num(p), &format!("round {i} phi[{name}]"));
+                }
+                for (name, w) in e["w_after"].as_object().unwrap() {
+                    close(
+                        num(&fb["reputations"][name]),
+                        num(w),
+                        &format!("round {i} w_after[{name}]"),
+                    );
+                }
+            }
+            (a, b) => panic!("round {i}: service feedback {a:?} but eval phi {b:?}"),
+        }
+    }
+}
+
+/// The same answers, bit for bit, except round ids (an orphan round stored at the kill, whose
+/// answer never reached the client, shifts later ids by one).
+fn assert_identical(a: &[Seen], b: &[Seen]) {
+    assert_eq!(a.len(), b.len());
+    let strip = |v: &Value| {
+        let mut v = v.clone();
+        if let Some(o) = v.as_object_mut() {
+            o.remove("round_id");
+        }
+        v
+    };
+    for (i, (x, y)) in a.iter().zip(b).enumerate() {
+        assert_eq!(strip(&x.fuse), strip(&y.fuse), "round {i}: fuse differs");
+        assert_eq!(
+            x.feedback.as_ref().map(strip),
+            y.feedback.as_ref().map(strip),
+            "round {i}: feedback differs"
+        );
+    }
+}
+
+#[test]
+fn replay_equals_eval_and_a_kill_9_loses_nothing() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (rounds, file) = rounds(tmp.path());
+    let reporters = sorted_reporters(&rounds).join(",");
+    let args = ["--reporters", reporters.as_str()];
+
+    // Uninterrupted run (A) beside eval, while the interrupted run (B) goes in this thread.
+    let (dir_a, file_a, rounds_a, reporters_a) = (
+        tmp.path().join("a"),
+        file.clone(),
+        rounds.clone(),
+        reporters.clone(),
+    );
+    let uninterrupted = std::thread::spawn(move || {
+        let emitted = eval(&file_a, &dir_a.with_extension("emit.jsonl"));
+        let srv = Server::start(&dir_a, &["--reporters", &reporters_a], &[]);
+        let mut prog = Progress::default();
+        assert!(replay(&srv.addr, &rounds_a, &mut prog));
+        (emitted, prog.seen, srv.state())
+    });
+
+    let dir_b = tmp.path().join("b");
+    let mut srv = Server::start(&dir_b, &args, &[]);
+    let mut prog = Progress::default();
+    let half = rounds.len() / 2;
+    assert!(replay(&srv.addr, &rounds[..half], &mut prog));
+    // Kill -9 a few milliseconds into the second half, with requests in flight.
+    let pid = srv.child.id().to_string();
+    let killer = std::thread::spawn(move || {
+        std::thread::sleep(std::time::Duration::from_millis(15));
+        Command::new("kill").args(["-9", &pid]).status().unwrap();
+    });
+    let finished = replay(&srv.addr, &rounds, &mut prog);
+    killer.join().unwrap();
+    assert!(
+        !finished,
+        "the replay finished before the kill; kill earlier"
+    );
+    srv.kill9();
+    let acked = prog.seen.len();
+    let acked_feedback: Vec<(usize, Value)> = prog
+        .seen
+        .iter()
+        .enumerate()
+        .filter_map(|(i, s)| s.feedback.clone().map(|f| (i, f)))
+        .collect();
+    assert!(acked > half, "nothing got through after the half");
+
+    let srv = Server::start(&dir_b, &args, &[]);
+    let st = srv.state();
+    let labelled = st["labelled_rounds"].as_u64().unwrap() as usize;
+    // Every acknowledged feedback is there; at most the one in flight was committed unseen.
+    assert!(
+        labelled >= acked_feedback.len() && labelled <= acked_feedback.len() + 1,
+        "{labelled} vs {}",
+        acked_feedback.len()
+    );
+    for (i, fb) in &acked_feedback {
+        let body = json!({"round_id": fb["round_id"], "labels": truth(&rounds[*i]).unwrap()});
+        let r = try_post(&srv.addr, "/v1/feedback", &body).unwrap();
+        assert_eq!(r.status, 200);
+        assert_eq!(
+            r.header("x-vlmfuse-repeated"),
+            Some("true"),
+            "round {i} was not stored"
+        );
+        assert_eq!(
+            &r.json(),
+            fb,
+            "round {i}: the repeat differs from the acknowledged answer"
+        );
+    }
+    assert_eq!(
+        srv.state(),
+        st,
+        "repeating acknowledged feedback changed the state"
+    );
+    assert!(
+        replay(&srv.addr, &rounds, &mut prog),
+        "the restarted server failed"
+    );
+    let state_b = srv.state();
+
+    let (emitted, seen_a, state_a) = uninterrupted.join().unwrap();
+    compare_with_eval(&seen_a, &emitted);
+    assert_identical(&seen_a, &prog.seen);
+    for key in [
+        "reputations",
+        "labelled_rounds",
+        "threshold",
+        "reporters",
+        "dim",
+    ] {
+        assert_eq!(state_a[key], state_b[key], "final state {key} differs");
+    }
+}

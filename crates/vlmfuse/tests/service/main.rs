@@ -1,0 +1,8 @@
+//! The service in-process (`app(state)` with `oneshot`, no socket): errors and limits,
+//! concurrency, and the clip pipeline. One test binary for all of them, so they link once.
+
+mod concurrency;
+mod errors;
+mod infer_media;
+mod infer_pipeline;
+mod support;
