@@ -9,7 +9,7 @@ use std::collections::BTreeMap;
 use std::io::Write;
 use std::time::Instant;
 use vlmfuse_fusion::replay::{prepare, replay, ReplayOptions};
-use vlmfuse_fusion::{Engine, FusionConfig, LabelledRound, Ontology, Round, RoundRecord};
+use vlmfuse_fusion::{Engine, FusionConfig, LabelledRound, Method, Ontology, Round, RoundRecord};
 
 /// What to measure.
 #[derive(Debug, Clone)]
@@ -64,75 +64,109 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
     sorted[((sorted.len() as f64 * p).ceil() as usize).clamp(1, sorted.len()) - 1]
 }
 
-pub fn engine_bench(args: &EngineBenchArgs) -> anyhow::Result<()> {
+/// One method's fuse-then-feedback latencies (µs) over `args.rounds` live rounds after a bank
+/// of `bank` labelled rounds. Under `adaptive` each live round is also observed (it joins the
+/// pool at fuse time, as in the service) before its feedback.
+fn fuse_feedback_latencies(
+    method: Method,
+    bank: usize,
+    args: &EngineBenchArgs,
+) -> anyhow::Result<(Vec<f64>, f64, f64)> {
     let ontology = Ontology::paper();
     let l = ontology.len();
     let names: Vec<String> = (0..args.reporters).map(|i| format!("m{i}")).collect();
-    println!(
-        "fuse-then-feedback per round (infer + Shapley credit + reputation update + bank, window \
-         and threshold refit), d = {}, n = {}, L = {l}, one core",
-        args.dim, args.reporters
-    );
-    println!(
-        "{:>9} {:>12} {:>12} {:>12} {:>14} {:>12}",
-        "bank", "mean (us)", "p50 (us)", "p95 (us)", "top-50 (us)", "fill (s)"
-    );
-    for &bank in &args.banks {
-        let mut engine = Engine::new(FusionConfig::default(), ontology.clone(), names.clone())?;
-        let mut synth = Synth::new(42, args.dim, args.reporters, l);
-        let fill = Instant::now();
-        for s in 0..bank {
-            let (x, present, r, y) = synth.round();
-            let lr = LabelledRound {
-                seq: s as u64,
-                round: Round {
-                    context: x,
-                    present,
-                    reports: r,
-                },
-                q: y.iter().map(|&v| 0.3 + 0.4 * v as f64).collect(),
-                truth: y,
-            };
-            engine.apply(&lr, None)?;
-        }
-        let fill_s = fill.elapsed().as_secs_f64();
-        let mut lat = Vec::with_capacity(args.rounds);
-        let mut scan = 0.0;
-        for t in 0..args.rounds {
-            let (x, present, r, y) = synth.round();
-            let round = Round {
+    let cfg = FusionConfig {
+        method,
+        ..FusionConfig::default()
+    };
+    let mut engine = Engine::new(cfg, ontology, names)?;
+    let mut synth = Synth::new(42, args.dim, args.reporters, l);
+    let fill = Instant::now();
+    for s in 0..bank {
+        let (x, present, r, y) = synth.round();
+        let lr = LabelledRound {
+            seq: s as u64,
+            round: Round {
                 context: x,
                 present,
                 reports: r,
-            };
-            let s0 = Instant::now();
-            std::hint::black_box(engine.bank().top_exact(&round.context, 50));
-            scan += s0.elapsed().as_secs_f64();
-            let start = Instant::now();
-            let inf = engine.infer(&round);
-            let seq = (bank + t) as u64;
-            let outcome = engine.credit(&inf.signals, &inf.w_used, &y, seq);
-            let lr = LabelledRound {
-                seq,
-                round,
-                truth: y,
-                q: inf.q,
-            };
-            engine.apply(&lr, Some(&outcome))?;
-            lat.push(start.elapsed().as_secs_f64() * 1e6);
+            },
+            q: y.iter().map(|&v| 0.3 + 0.4 * v as f64).collect(),
+            truth: y,
+        };
+        engine.apply(&lr, None)?;
+    }
+    let fill_s = fill.elapsed().as_secs_f64();
+    let mut lat = Vec::with_capacity(args.rounds);
+    let mut scan = 0.0;
+    for t in 0..args.rounds {
+        let (x, present, r, y) = synth.round();
+        let round = Round {
+            context: x,
+            present,
+            reports: r,
+        };
+        let s0 = Instant::now();
+        std::hint::black_box(engine.bank().top_exact(&round.context, 50));
+        scan += s0.elapsed().as_secs_f64();
+        let seq = (bank + t) as u64;
+        let start = Instant::now();
+        let inf = engine.infer(&round);
+        let t1 = Instant::now();
+        engine.observe(seq, &round, &inf)?;
+        let t2 = Instant::now();
+        let outcome = engine.credit(&inf.signals, &inf.w_used, &y, seq);
+        let t3 = Instant::now();
+        if std::env::var_os("VLMFUSE_BENCH_PARTS").is_some() && t % 50 == 0 {
+            eprintln!("{method}: infer {:?} observe {:?} credit {:?}", t1 - start, t2 - t1, t3 - t2);
         }
-        let mean = lat.iter().sum::<f64>() / lat.len() as f64;
-        lat.sort_by(f64::total_cmp);
-        println!(
-            "{:>9} {:>12.1} {:>12.1} {:>12.1} {:>14.1} {:>12.2}",
-            bank,
-            mean,
-            percentile(&lat, 0.5),
-            percentile(&lat, 0.95),
-            scan / args.rounds as f64 * 1e6,
-            fill_s
-        );
-        let _ = std::io::stdout().flush();
+        let lr = LabelledRound {
+            seq,
+            round,
+            truth: y,
+            q: inf.q,
+        };
+        engine.apply(&lr, Some(&outcome))?;
+        lat.push(start.elapsed().as_secs_f64() * 1e6);
+    }
+    lat.sort_by(f64::total_cmp);
+    Ok((lat, scan / args.rounds as f64 * 1e6, fill_s))
+}
+
+/// Fuse-then-feedback per round under both methods at each bank size, in one run, with the
+/// adaptive/paper ratio of the means (issue 9's speed target: at most 1.5x at bank 10k, d 512).
+pub fn engine_bench(args: &EngineBenchArgs) -> anyhow::Result<()> {
+    let l = Ontology::paper().len();
+    println!(
+        "fuse-then-feedback per round (infer [+ observe] + Shapley credit + reputation update + \
+         bank, window and threshold refit), d = {}, n = {}, L = {l}, one core",
+        args.dim, args.reporters
+    );
+    println!(
+        "{:>9} {:>9} {:>12} {:>12} {:>12} {:>14} {:>10} {:>9}",
+        "bank", "method", "mean (us)", "p50 (us)", "p95 (us)", "top-50 (us)", "fill (s)", "ratio"
+    );
+    for &bank in &args.banks {
+        let mut paper_mean = f64::NAN;
+        for method in [Method::Paper, Method::Adaptive] {
+            let (lat, scan, fill_s) = fuse_feedback_latencies(method, bank, args)?;
+            let mean = lat.iter().sum::<f64>() / lat.len() as f64;
+            if method == Method::Paper {
+                paper_mean = mean;
+            }
+            println!(
+                "{:>9} {:>9} {:>12.1} {:>12.1} {:>12.1} {:>14.1} {:>10.2} {:>8.2}x",
+                bank,
+                method.name(),
+                mean,
+                percentile(&lat, 0.5),
+                percentile(&lat, 0.95),
+                scan,
+                fill_s,
+                mean / paper_mean
+            );
+            let _ = std::io::stdout().flush();
+        }
     }
     Ok(())
 }

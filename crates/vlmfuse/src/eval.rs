@@ -544,10 +544,9 @@ pub fn evaluate_curve(
     args: &EvalArgs,
 ) -> anyhow::Result<CurveRun> {
     if !args.ablations.is_empty() || args.emit_rounds.is_some() {
-        return Err(
+        bail!(
             "--curve does not combine with --ablation or --emit-rounds; run those with \
              --labelled N instead"
-                .into(),
         );
     }
     let (engine, all_rounds) = prepare(cfg, ontology, records)?;

@@ -56,6 +56,12 @@ pub struct Pool {
     by_seq: HashMap<u64, usize>,
     /// Positions of the unlabelled entries, ascending: what EM visits.
     unlabelled: Vec<u32>,
+    /// Per entry: the cosine of the worst neighbour it keeps when its list is full, else
+    /// `-inf`. A flat copy of `nb[j].last().sim`, so that a scan tests every entry without
+    /// chasing one pointer per entry (the lists are separate allocations). Used only without
+    /// decay, where the ranking weight is a monotone function of the cosine.
+    #[serde(default)]
+    worst_sim: Vec<f64>,
 }
 
 /// `max(0, s)^tau`.
@@ -89,6 +95,7 @@ impl Pool {
             nb: Vec::new(),
             by_seq: HashMap::new(),
             unlabelled: Vec::new(),
+            worst_sim: Vec::new(),
         }
     }
 
@@ -202,6 +209,12 @@ impl Pool {
         }
     }
 
+    /// The cosine a newcomer must reach to enter `pos`'s list: its worst neighbour's when the
+    /// list is full, else `-inf`.
+    fn worst_of(&self, pos: usize) -> f64 {
+        self.worst(pos).map_or(f64::NEG_INFINITY, |w| w.sim)
+    }
+
     /// Sorts neighbours best first and keeps `m` (a selection first, so that ranking a whole
     /// small pool costs O(n + m log m)).
     pub fn rank(&self, v: &mut Vec<Nb>, m: usize) {
@@ -243,7 +256,39 @@ impl Pool {
                 key > w.key || (key == w.key && sim >= w.sim)
             }
         };
+        let by_sim = self.half_life <= 0.0 && self.worst_sim.len() == len;
         match self.bank.approx_with_bounds(x) {
+            Some((approx, bound)) if by_sim => {
+                // Without decay the weight `max(0, s)^tau` is a non-decreasing function of the
+                // cosine and ties are broken by the cosine, so ranking by weight is ranking by
+                // cosine: every test below is done on cosines (no `powf` per entry) and the
+                // weight is computed only for the entries scored exactly.
+                let mut lo: Vec<f64> = Vec::with_capacity(len);
+                for j in 0..len {
+                    let a = approx[j] as f64;
+                    lo.push(a - bound[j]);
+                    if a + bound[j] >= self.worst_sim[j] {
+                        let sim = dot(x, self.bank.context(j));
+                        if sim >= self.worst_sim[j] {
+                            rev.push((j, sim));
+                        }
+                    }
+                }
+                if m > 0 {
+                    let (_, &mut cut, _) = lo.select_nth_unstable_by(m - 1, |a, b| b.total_cmp(a));
+                    for j in 0..len {
+                        if approx[j] as f64 + bound[j] >= cut {
+                            let sim = dot(x, self.bank.context(j));
+                            top.push(Nb {
+                                pos: j as u32,
+                                sim,
+                                key: self.key(sim, self.clock[j], at),
+                            });
+                        }
+                    }
+                    self.rank(&mut top, m);
+                }
+            }
             None => {
                 for j in 0..len {
                     let sim = dot(x, self.bank.context(j));
@@ -347,6 +392,11 @@ impl Pool {
         self.by_seq.insert(seq, pos);
         self.nb
             .push(scan.top.iter().take(self.kmax).copied().collect());
+        let track = self.worst_sim.len() == pos;
+        if track {
+            let w = self.worst_of(pos);
+            self.worst_sim.push(w);
+        }
         let me = pos as u32;
         for &(j, sim) in &scan.rev {
             let entry = Nb {
@@ -367,6 +417,9 @@ impl Pool {
             list.insert(at, entry);
             if list.len() > self.kmax {
                 list.pop();
+            }
+            if track {
+                self.worst_sim[j] = self.worst_of(j);
             }
         }
         pos
