@@ -31,7 +31,10 @@ pub(crate) fn pair_index(n: usize, i: usize, j: usize) -> usize {
 
 /// The phi coefficient of a 2x2 table with every cell smoothed by +0.5, floored at 0 and capped.
 pub fn smoothed_phi(c: [u32; 4], rho_max: f64) -> f64 {
-    smoothed_phi_f64([c[0] as f64, c[1] as f64, c[2] as f64, c[3] as f64], rho_max)
+    smoothed_phi_f64(
+        [c[0] as f64, c[1] as f64, c[2] as f64, c[3] as f64],
+        rho_max,
+    )
 }
 
 /// [`smoothed_phi`] of a table of (expected, weighted) counts.

@@ -109,7 +109,11 @@ pub fn dawid_skene(
                         continue;
                     }
                     let (yes, no) = llr[i * l + k];
-                    z += if r.round.reports[i * l + k] != 0 { yes } else { no };
+                    z += if r.round.reports[i * l + k] != 0 {
+                        yes
+                    } else {
+                        no
+                    };
                 }
                 let q = crate::signals::sigmoid(z);
                 change = change.max((q - p[k]).abs());

@@ -208,6 +208,12 @@ impl Engine {
     pub fn method(&self) -> Method {
         self.cfg.method
     }
+
+    /// Whether the decisions served now are majority vote's: `adaptive`'s vote fallback, until
+    /// the model has beaten the vote on the labelled rounds. Always false under `paper`.
+    pub fn serving_vote(&self) -> bool {
+        self.adaptive.is_some() && self.ad_voting()
+    }
     pub fn ontology(&self) -> &Ontology {
         &self.ontology
     }

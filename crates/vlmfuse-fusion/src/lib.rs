@@ -18,8 +18,8 @@ pub mod threshold;
 pub use adaptive::{AdaptiveConfig, Guardrail, Reputation, SoftTruth, WeightNorm};
 pub use config::{Ablations, FusionConfig, Method, ThresholdMode};
 pub use engine::{
-    fixed_share, reputation_update, Engine, FeedbackOutcome, Inference, LabelExplanation, LabelledRound,
-    ReporterStats, Round, RoundRecord,
+    fixed_share, reputation_update, Engine, FeedbackOutcome, Inference, LabelExplanation,
+    LabelledRound, ReporterStats, Round, RoundRecord,
 };
 pub use error::FusionError;
 pub use ontology::{Label, Ontology};

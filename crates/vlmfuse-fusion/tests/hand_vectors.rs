@@ -34,7 +34,7 @@ const STOP: usize = 4;
 
 #[test]
 fn one_reporter_one_neighbour() {
-    let mut e = Engine::new(FusionConfig::default(), Ontology::paper(), vec!["a".into()]).unwrap();
+    let mut e = Engine::new(FusionConfig::paper(), Ontology::paper(), vec!["a".into()]).unwrap();
     // Bank: a reported {brake}, truth {brake}.
     learn(&mut e, 0, vec![3.0, 4.0], &[("a", &["brake"])], &["brake"]);
     // Query at the same direction: cos = 1, kappa = 1.
@@ -62,7 +62,7 @@ fn one_reporter_one_neighbour() {
 
 #[test]
 fn kernel_is_cosine_to_the_fourth_and_negative_cosines_count_zero() {
-    let mut e = Engine::new(FusionConfig::default(), Ontology::paper(), vec!["a".into()]).unwrap();
+    let mut e = Engine::new(FusionConfig::paper(), Ontology::paper(), vec!["a".into()]).unwrap();
     learn(&mut e, 0, vec![1.0, 0.0], &[("a", &["brake"])], &["brake"]);
     learn(&mut e, 1, vec![-1.0, 0.0], &[("a", &[])], &["brake"]);
     // Query at 60 degrees from the first: cos = 0.5, kappa = 1/16; the second has cos = -0.5.
@@ -83,7 +83,7 @@ fn kernel_is_cosine_to_the_fourth_and_negative_cosines_count_zero() {
 #[test]
 fn guardrail_divides_agreeing_llrs_by_one_plus_rho() {
     let names = vec!["a".to_string(), "b".to_string()];
-    let mut e = Engine::new(FusionConfig::default(), Ontology::paper(), names).unwrap();
+    let mut e = Engine::new(FusionConfig::paper(), Ontology::paper(), names).unwrap();
     // Both wrongly report brake: errors (1,1) on brake, (0,0) elsewhere.
     learn(
         &mut e,
@@ -120,7 +120,7 @@ fn guardrail_divides_agreeing_llrs_by_one_plus_rho() {
 #[test]
 fn two_player_shapley_by_hand() {
     let names = vec!["a".to_string(), "b".to_string()];
-    let mut e = Engine::new(FusionConfig::default(), Ontology::paper(), names).unwrap();
+    let mut e = Engine::new(FusionConfig::paper(), Ontology::paper(), names).unwrap();
     learn(
         &mut e,
         0,

@@ -180,7 +180,7 @@ fn names() -> Vec<String> {
 
 #[test]
 fn the_empty_bank_gives_no_signal() {
-    let e = Engine::new(FusionConfig::default(), Ontology::paper(), names()).unwrap();
+    let e = Engine::new(FusionConfig::paper(), Ontology::paper(), names()).unwrap();
     let (round, _) = e
         .parse(&record(
             vec![1.0, 2.0],
@@ -205,7 +205,7 @@ fn trained(ablations: Ablations) -> (Engine, Round) {
         k: 8,
         k_prior: 8,
         ablations,
-        ..Default::default()
+        ..FusionConfig::paper()
     };
     let o = Ontology::paper();
     let mut e = Engine::new(cfg, o.clone(), names()).unwrap();
@@ -307,7 +307,7 @@ fn each_ablation_switches_off_exactly_its_part() {
 fn rejected_rounds_name_the_problem_and_change_nothing() {
     let cfg = FusionConfig {
         dim: Some(3),
-        ..Default::default()
+        ..FusionConfig::paper()
     };
     let e = Engine::new(cfg, Ontology::paper(), names()).unwrap();
     let before = serde_json::to_string(&e).unwrap();

@@ -452,7 +452,7 @@ fn engine_matches_reference_full_method() {
         corr_window: 25,
         threshold_window: 40,
         eta: 0.5,
-        ..Default::default()
+        ..FusionConfig::paper()
     };
     check(cfg, 1, 160, 3, false);
 }
@@ -465,7 +465,7 @@ fn batch_knn_matches_reference() {
         corr_window: 25,
         threshold_window: 40,
         eta: 0.5,
-        ..Default::default()
+        ..FusionConfig::paper()
     };
     check(cfg, 2, 160, 3, true);
 }
@@ -475,7 +475,7 @@ fn engine_matches_reference_five_reporters_defaults() {
     check(
         FusionConfig {
             eta: 0.3,
-            ..Default::default()
+            ..FusionConfig::paper()
         },
         3,
         90,
@@ -493,7 +493,7 @@ fn engine_matches_reference_under_each_ablation() {
             corr_window: 30,
             eta: 0.5,
             ablations: Ablations::from_name(name).unwrap(),
-            ..Default::default()
+            ..FusionConfig::paper()
         };
         check(cfg, 4, 80, 3, true);
     }
@@ -504,11 +504,33 @@ fn one_reporter_works() {
     check(
         FusionConfig {
             k: 5,
-            ..Default::default()
+            ..FusionConfig::paper()
         },
         5,
         40,
         1,
         false,
     );
+}
+
+/// The adaptive method with every extension off reduces to SPEC's: same posteriors,
+/// thresholds, credits and reputations as the independent reference, on rounds that are
+/// labelled (15% are not, and with `unlabelled_weight = 0` they teach nothing, as in SPEC).
+#[test]
+fn adaptive_with_every_extension_off_is_the_paper_method() {
+    let paper = FusionConfig {
+        k: 10,
+        k_prior: 12,
+        ..FusionConfig::paper()
+    };
+    let cfg = FusionConfig {
+        method: vlmfuse_fusion::Method::Adaptive,
+        adaptive: vlmfuse_fusion::AdaptiveConfig::paper_equivalent(
+            paper.eta,
+            paper.threshold_initial,
+            paper.threshold_min_rounds,
+        ),
+        ..paper
+    };
+    check(cfg, 7, 160, 3, false);
 }

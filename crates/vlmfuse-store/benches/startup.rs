@@ -19,8 +19,7 @@ fn main() {
         .to_vec();
     let ontology = Ontology::paper();
     let l = ontology.len();
-    let fresh =
-        || Engine::new(FusionConfig::default(), ontology.clone(), reporters.clone()).unwrap();
+    let fresh = || Engine::new(FusionConfig::paper(), ontology.clone(), reporters.clone()).unwrap();
     let empty = fresh();
     let id = Identity {
         reporters: reporters.clone(),
@@ -77,6 +76,7 @@ fn main() {
             fbs.push(StoredFeedback {
                 seq: seq + i,
                 labelled_order: seq + i,
+                rounds_before: seq + m,
                 truth,
                 outcome: o,
             });

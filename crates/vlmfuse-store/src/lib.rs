@@ -77,17 +77,25 @@ pub struct StoredFeedback {
     pub seq: u64,
     /// 0-based position in labelling order.
     pub labelled_order: u64,
+    /// Rounds stored when the feedback was applied: where it falls among the rounds' own
+    /// events, which the `adaptive` method also learns from (`Engine::observe`). A rebuild
+    /// replays both kinds of event in this order. Databases written before the column existed
+    /// read `seq + 1` (the earliest it can have been).
+    pub rounds_before: u64,
     pub truth: Vec<u8>,
     pub outcome: FeedbackOutcome,
 }
 
 /// What [`Store::load_engine`] found.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct LoadReport {
     pub rounds: u64,
     pub labelled: u64,
     /// The `seq` the next stored round gets.
     pub next_seq: u64,
+    /// The fusion method the database was written under before this start, when it differs
+    /// from the engine's: every outcome was then recomputed under the engine's method.
+    pub migrated_from: Option<String>,
 }
 
 /// The public id of a round: its creation order, zero-padded so ids sort like rounds.
@@ -168,6 +176,7 @@ CREATE TABLE IF NOT EXISTS round_detail (
 CREATE TABLE IF NOT EXISTS feedback (
     seq            INTEGER PRIMARY KEY REFERENCES rounds(seq),
     labelled_order INTEGER NOT NULL UNIQUE,
+    rounds_before  INTEGER,         -- rounds stored when it was applied (event order)
     created_ms     INTEGER NOT NULL,
     truth          BLOB NOT NULL,   -- L bytes, 0/1
     outcome        TEXT NOT NULL    -- vlmfuse_fusion::FeedbackOutcome as JSON
@@ -223,6 +232,14 @@ impl Store {
                 )))
             }
         }
+        // Databases from before the event order was recorded gain the column (NULL rows read
+        // as `seq + 1`); adding a nullable column rewrites nothing.
+        let has_order: bool = conn
+            .prepare("SELECT 1 FROM pragma_table_info('feedback') WHERE name = 'rounds_before'")?
+            .exists([])?;
+        if !has_order {
+            conn.execute("ALTER TABLE feedback ADD COLUMN rounds_before INTEGER", [])?;
+        }
         Ok(Self { conn, path })
     }
 
@@ -275,13 +292,39 @@ impl Store {
         }
     }
 
+    /// The fusion method the stored outcomes were computed under: the `method` meta key,
+    /// else `paper` for a database that already holds feedback (written before the key
+    /// existed, when `paper` was the only method), else none yet.
+    pub fn method(&self) -> Result<Option<String>, StoreError> {
+        if let Some(m) = self.meta("method")? {
+            return Ok(Some(m));
+        }
+        let (_, labelled) = self.counts()?;
+        Ok((labelled > 0).then(|| "paper".to_string()))
+    }
+
+    fn set_method(&self, method: &str) -> Result<(), StoreError> {
+        self.conn.execute(
+            "INSERT INTO meta (key, value) VALUES ('method', ?1)
+             ON CONFLICT(key) DO UPDATE SET value = excluded.value",
+            [method],
+        )?;
+        Ok(())
+    }
+
     /// Rebuilds a freshly built engine (same reporters, ontology and config as the database)
-    /// by applying every labelled round with its stored outcome in labelling order.
+    /// by replaying the stored events in the order the writer saw them: every round as it was
+    /// stored (which the `adaptive` method learns from, `Engine::observe`) and every feedback
+    /// in labelling order, at the point among the rounds where it was applied.
     ///
-    /// Applying the stored outcome rather than recomputing it is what makes a restart exact: the
-    /// reputation and statistics updates are the very floating-point operations the live service
-    /// did, in the same order.
-    pub fn load_engine(&self, engine: &mut Engine) -> Result<LoadReport, StoreError> {
+    /// Under the method the database was written with, each feedback applies its stored
+    /// outcome rather than recomputing it, which is what makes a restart exact: the reputation
+    /// and statistics updates are the very floating-point operations the live service did, in
+    /// the same order. Under another method (the configuration changed `[fusion] method`) the
+    /// rounds are the state: each round is inferred again, each credit recomputed, and the
+    /// outcomes, the rounds' stored inferences and the state row are rewritten in one
+    /// transaction, so the database then reads as if it had been written under the new method.
+    pub fn load_engine(&mut self, engine: &mut Engine) -> Result<LoadReport, StoreError> {
         if engine.labelled() != 0 {
             return Err(StoreError::Corrupt(
                 "load_engine needs a fresh engine".into(),
@@ -290,72 +333,216 @@ impl Store {
         if let Some(d) = self.dim()? {
             engine.fix_dim(d)?;
         }
+        let method = engine.method().name().to_string();
+        let stored = self.method()?;
+        let migrate = stored.as_deref().is_some_and(|m| m != method);
         let n = engine.reporters().len();
         let l = engine.ontology().len();
-        let mut stmt = self.conn.prepare(
-            "SELECT r.seq, r.context, r.present, r.reports, r.q, f.truth, f.outcome
-             FROM feedback f JOIN rounds r ON r.seq = f.seq
-             ORDER BY f.labelled_order",
-        )?;
-        let mut rows = stmt.query([])?;
-        let mut labelled = 0u64;
-        while let Some(row) = rows.next()? {
-            let seq: i64 = row.get(0)?;
-            let context = blob_to_f64s(row.get_ref(1)?.as_blob()?)?;
-            let present: Vec<bool> = row.get_ref(2)?.as_blob()?.iter().map(|&b| b != 0).collect();
-            let reports = row.get_ref(3)?.as_blob()?.to_vec();
-            let q = blob_to_f64s(row.get_ref(4)?.as_blob()?)?;
-            let truth = row.get_ref(5)?.as_blob()?.to_vec();
-            let outcome: FeedbackOutcome = serde_json::from_slice(row.get_ref(6)?.as_bytes()?)?;
-            if present.len() != n || reports.len() != n * l || truth.len() != l || q.len() != l {
-                return Err(StoreError::Corrupt(format!(
-                    "round {seq} has sizes that do not match {n} reporters and {l} labels"
-                )));
-            }
-            let lr = LabelledRound {
-                seq: seq as u64,
-                round: Round {
-                    context,
-                    present,
-                    reports,
-                },
-                truth,
-                q,
-            };
-            engine.apply(&lr, Some(&outcome))?;
-            labelled += 1;
-        }
-        // The state row is written in the same transaction as each feedback: a rebuild that
-        // disagrees with it means the tables were edited or damaged, and serving would be wrong.
-        let state: Option<(String, i64)> = self
-            .conn
-            .query_row(
-                "SELECT reputations, labelled FROM state WHERE id = 1",
-                [],
-                |r| Ok((r.get(0)?, r.get(1)?)),
-            )
-            .optional()?;
-        if let Some((w, lab)) = state {
-            let w: Vec<f64> = serde_json::from_str(&w)?;
-            if lab as u64 != labelled || w.as_slice() != engine.reputations() {
-                return Err(StoreError::Corrupt(format!(
-                    "the rebuilt state ({labelled} labelled, reputations {:?}) differs from \
-                     the stored one ({lab} labelled, reputations {w:?})",
-                    engine.reputations()
-                )));
-            }
-        } else if labelled != 0 {
-            return Err(StoreError::Corrupt("feedback without a state row".into()));
-        }
+        // The rounds matter only to a method that learns from them, or when recomputing.
+        let needs_rounds = migrate || engine.method() != vlmfuse_fusion::Method::Paper;
         let (rounds, max_seq): (i64, Option<i64>) =
             self.conn
                 .query_row("SELECT COUNT(*), MAX(seq) FROM rounds", [], |r| {
                     Ok((r.get(0)?, r.get(1)?))
                 })?;
+        let next_seq = max_seq.map(|m| m as u64 + 1).unwrap_or(0);
+        let check = |seq: u64, round: &Round| -> Result<(), StoreError> {
+            if round.present.len() != n || round.reports.len() != n * l {
+                return Err(StoreError::Corrupt(format!(
+                    "round {seq} has sizes that do not match {n} reporters and {l} labels"
+                )));
+            }
+            Ok(())
+        };
+        let mut new_outcomes: Vec<(u64, String)> = Vec::new();
+        let mut new_inferences: Vec<(u64, String, Vec<u8>, f64)> = Vec::new();
+        let mut labelled = 0u64;
+        {
+            let mut round_stmt = self.conn.prepare(
+                "SELECT r.seq, r.context, r.present, r.reports, d.inference
+                 FROM rounds r JOIN round_detail d ON d.seq = r.seq ORDER BY r.seq",
+            )?;
+            let mut round_rows = if needs_rounds {
+                Some(round_stmt.query([])?)
+            } else {
+                None
+            };
+            // Rounds observed so far, and (when recomputing) the inference each got, until its
+            // feedback uses it.
+            let mut observed = 0u64;
+            let mut inferred: std::collections::HashMap<u64, (Round, Inference)> =
+                std::collections::HashMap::new();
+            let mut advance =
+                |upto: u64,
+                 engine: &mut Engine,
+                 inferred: &mut std::collections::HashMap<u64, (Round, Inference)>,
+                 new_inferences: &mut Vec<(u64, String, Vec<u8>, f64)>|
+                 -> Result<(), StoreError> {
+                    let Some(rows) = round_rows.as_mut() else {
+                        return Ok(());
+                    };
+                    while observed < upto {
+                        let Some(row) = rows.next()? else {
+                            observed = upto;
+                            break;
+                        };
+                        let seq = row.get::<_, i64>(0)? as u64;
+                        let round = Round {
+                            context: blob_to_f64s(row.get_ref(1)?.as_blob()?)?,
+                            present: row.get_ref(2)?.as_blob()?.iter().map(|&b| b != 0).collect(),
+                            reports: row.get_ref(3)?.as_blob()?.to_vec(),
+                        };
+                        check(seq, &round)?;
+                        let inf: Inference = if migrate {
+                            let inf = engine.infer(&round);
+                            new_inferences.push((
+                                seq,
+                                serde_json::to_string(&inf)?,
+                                f64s_to_blob(&inf.q),
+                                inf.thresholds.first().copied().unwrap_or(f64::NAN),
+                            ));
+                            inf
+                        } else {
+                            serde_json::from_slice(row.get_ref(4)?.as_bytes()?)?
+                        };
+                        engine.observe(seq, &round, &inf)?;
+                        if migrate {
+                            inferred.insert(seq, (round, inf));
+                        }
+                        observed = seq + 1;
+                    }
+                    Ok(())
+                };
+            let mut fb_stmt = self.conn.prepare(
+                "SELECT r.seq, r.context, r.present, r.reports, r.q, f.truth, f.outcome,
+                        f.rounds_before
+                 FROM feedback f JOIN rounds r ON r.seq = f.seq
+                 ORDER BY f.labelled_order",
+            )?;
+            let mut fb_rows = fb_stmt.query([])?;
+            while let Some(row) = fb_rows.next()? {
+                let seq = row.get::<_, i64>(0)? as u64;
+                let before = row.get::<_, Option<i64>>(7)?.map_or(seq + 1, |b| b as u64);
+                advance(before, engine, &mut inferred, &mut new_inferences)?;
+                let truth = row.get_ref(5)?.as_blob()?.to_vec();
+                if truth.len() != l {
+                    return Err(StoreError::Corrupt(format!(
+                        "feedback for round {seq} has {} labels, not {l}",
+                        truth.len()
+                    )));
+                }
+                let (lr, outcome) = if migrate {
+                    let (round, inf) = inferred.remove(&seq).ok_or_else(|| {
+                        StoreError::Corrupt(format!(
+                            "feedback for round {seq} precedes the round in event order"
+                        ))
+                    })?;
+                    let o = engine.credit(&inf.signals, &inf.w_used, &truth, seq);
+                    new_outcomes.push((seq, serde_json::to_string(&o)?));
+                    let lr = LabelledRound {
+                        seq,
+                        round,
+                        truth,
+                        q: inf.q,
+                    };
+                    (lr, o)
+                } else {
+                    let round = Round {
+                        context: blob_to_f64s(row.get_ref(1)?.as_blob()?)?,
+                        present: row.get_ref(2)?.as_blob()?.iter().map(|&b| b != 0).collect(),
+                        reports: row.get_ref(3)?.as_blob()?.to_vec(),
+                    };
+                    check(seq, &round)?;
+                    let q = blob_to_f64s(row.get_ref(4)?.as_blob()?)?;
+                    if q.len() != l {
+                        return Err(StoreError::Corrupt(format!(
+                            "round {seq} has {} posteriors, not {l}",
+                            q.len()
+                        )));
+                    }
+                    let o: FeedbackOutcome = serde_json::from_slice(row.get_ref(6)?.as_bytes()?)?;
+                    (
+                        LabelledRound {
+                            seq,
+                            round,
+                            truth,
+                            q,
+                        },
+                        o,
+                    )
+                };
+                engine.apply(&lr, Some(&outcome))?;
+                labelled += 1;
+            }
+            advance(u64::MAX, engine, &mut inferred, &mut new_inferences)?;
+        }
+        if migrate {
+            let tx = self
+                .conn
+                .transaction_with_behavior(TransactionBehavior::Immediate)?;
+            {
+                let mut up =
+                    tx.prepare_cached("UPDATE feedback SET outcome = ?2 WHERE seq = ?1")?;
+                for (seq, o) in &new_outcomes {
+                    up.execute(params![*seq as i64, o])?;
+                }
+                let mut det =
+                    tx.prepare_cached("UPDATE round_detail SET inference = ?2 WHERE seq = ?1")?;
+                let mut rq =
+                    tx.prepare_cached("UPDATE rounds SET q = ?2, threshold = ?3 WHERE seq = ?1")?;
+                for (seq, inf, q, t) in &new_inferences {
+                    det.execute(params![*seq as i64, inf])?;
+                    rq.execute(params![*seq as i64, q, *t])?;
+                }
+                if labelled > 0 {
+                    tx.execute(
+                        "UPDATE state SET reputations = ?1, labelled = ?2 WHERE id = 1",
+                        params![
+                            serde_json::to_string(engine.reputations())?,
+                            labelled as i64
+                        ],
+                    )?;
+                }
+                tx.execute(
+                    "INSERT INTO meta (key, value) VALUES ('method', ?1)
+                     ON CONFLICT(key) DO UPDATE SET value = excluded.value",
+                    [&method],
+                )?;
+            }
+            tx.commit()?;
+        } else {
+            // The state row is written in the same transaction as each feedback: a rebuild that
+            // disagrees with it means the tables were edited or damaged, and serving would be
+            // wrong.
+            let state: Option<(String, i64)> = self
+                .conn
+                .query_row(
+                    "SELECT reputations, labelled FROM state WHERE id = 1",
+                    [],
+                    |r| Ok((r.get(0)?, r.get(1)?)),
+                )
+                .optional()?;
+            if let Some((w, lab)) = state {
+                let w: Vec<f64> = serde_json::from_str(&w)?;
+                if lab as u64 != labelled || w.as_slice() != engine.reputations() {
+                    return Err(StoreError::Corrupt(format!(
+                        "the rebuilt state ({labelled} labelled, reputations {:?}) differs from \
+                         the stored one ({lab} labelled, reputations {w:?})",
+                        engine.reputations()
+                    )));
+                }
+            } else if labelled != 0 {
+                return Err(StoreError::Corrupt("feedback without a state row".into()));
+            }
+            if stored.is_none() {
+                self.set_method(&method)?;
+            }
+        }
         Ok(LoadReport {
             rounds: rounds as u64,
             labelled,
-            next_seq: max_seq.map(|m| m as u64 + 1).unwrap_or(0),
+            next_seq,
+            migrated_from: if migrate { stored } else { None },
         })
     }
 
@@ -471,23 +658,25 @@ impl Store {
         let row = self
             .conn
             .query_row(
-                "SELECT labelled_order, truth, outcome FROM feedback WHERE seq = ?1",
+                "SELECT labelled_order, truth, outcome, rounds_before FROM feedback WHERE seq = ?1",
                 [seq as i64],
                 |r| {
                     Ok((
                         r.get::<_, i64>(0)?,
                         r.get::<_, Vec<u8>>(1)?,
                         r.get::<_, String>(2)?,
+                        r.get::<_, Option<i64>>(3)?,
                     ))
                 },
             )
             .optional()?;
-        let Some((order, truth, outcome)) = row else {
+        let Some((order, truth, outcome, before)) = row else {
             return Ok(None);
         };
         Ok(Some(StoredFeedback {
             seq,
             labelled_order: order as u64,
+            rounds_before: before.map_or(seq + 1, |b| b as u64),
             truth,
             outcome: serde_json::from_str(&outcome)?,
         }))
@@ -505,8 +694,8 @@ impl Store {
         {
             let labelled: i64 = tx.query_row("SELECT COUNT(*) FROM feedback", [], |r| r.get(0))?;
             let mut ins = tx.prepare_cached(
-                "INSERT INTO feedback (seq, labelled_order, created_ms, truth, outcome)
-                 VALUES (?1, ?2, ?3, ?4, ?5)",
+                "INSERT INTO feedback (seq, labelled_order, created_ms, truth, outcome, rounds_before)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
             )?;
             let now = now_ms();
             for (i, fb) in fbs.iter().enumerate() {
@@ -522,7 +711,8 @@ impl Store {
                     fb.labelled_order as i64,
                     now,
                     &fb.truth,
-                    serde_json::to_string(&fb.outcome)?
+                    serde_json::to_string(&fb.outcome)?,
+                    fb.rounds_before as i64
                 ])?;
             }
             tx.execute(

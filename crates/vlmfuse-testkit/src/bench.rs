@@ -118,7 +118,12 @@ fn fuse_feedback_latencies(
         let outcome = engine.credit(&inf.signals, &inf.w_used, &y, seq);
         let t3 = Instant::now();
         if std::env::var_os("VLMFUSE_BENCH_PARTS").is_some() && t % 50 == 0 {
-            eprintln!("{method}: infer {:?} observe {:?} credit {:?}", t1 - start, t2 - t1, t3 - t2);
+            eprintln!(
+                "{method}: infer {:?} observe {:?} credit {:?}",
+                t1 - start,
+                t2 - t1,
+                t3 - t2
+            );
         }
         let lr = LabelledRound {
             seq,

@@ -174,7 +174,8 @@ pub fn resolve_method(args: &EvalArgs) -> anyhow::Result<Method> {
             .and_then(|f| f.get("method"))
             .and_then(|m| m.as_str())
         {
-            return parse_method(m).map_err(|e| anyhow::anyhow!("{}: [fusion] {e}", path.display()));
+            return parse_method(m)
+                .map_err(|e| anyhow::anyhow!("{}: [fusion] {e}", path.display()));
         }
     }
     Ok(DEFAULT_METHOD)
@@ -403,9 +404,7 @@ pub fn format_table(run: &EvalRun) -> String {
     for r in &run.rows {
         s.push_str(&score_line(&r.name, &r.scores, 38));
     }
-    s.push_str(
-        TABLE_NOTE,
-    );
+    s.push_str(TABLE_NOTE);
     let names = run.engine.reporters();
     let w = run.engine.reputations();
     s.push_str("Final reputations: ");
@@ -585,8 +584,7 @@ pub fn evaluate_curve(
                 method,
                 ..cfg.clone()
             };
-            let mut fresh = Engine::new(c, ontology.clone(), engine.reporters().to_vec())
-                ?;
+            let mut fresh = Engine::new(c, ontology.clone(), engine.reporters().to_vec())?;
             if let Some(d) = engine.dim() {
                 fresh.fix_dim(d)?;
             }
@@ -595,8 +593,7 @@ pub fn evaluate_curve(
                 if done.is_multiple_of(64) {
                     bar.set_position(done);
                 }
-            })
-            ?;
+            })?;
             points.push(CurvePoint {
                 keep,
                 labelled,

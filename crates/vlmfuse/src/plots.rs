@@ -2,10 +2,10 @@
 //! charts render the same on a bare CI machine as on a laptop).
 
 use crate::eval::{CurveRun, EvalRun, CURVE_METHODS};
-use vlmfuse_fusion::metrics::Scores;
 use plotters::coord::ranged1d::SegmentValue;
 use plotters::prelude::*;
 use std::path::{Path, PathBuf};
+use vlmfuse_fusion::metrics::Scores;
 
 const PALETTE: [RGBColor; 8] = [
     RGBColor(31, 119, 180),
@@ -293,7 +293,10 @@ fn curve(path: &Path, c: &CurveRun) -> anyhow::Result<PathBuf> {
         ("micro-F1", |s| s.micro_f1, true),
         ("macro-F1", |s| s.macro_f1, true),
     ];
-    let mv = c.baselines.iter().find(|b| b.name.ends_with("majority vote"));
+    let mv = c
+        .baselines
+        .iter()
+        .find(|b| b.name.ends_with("majority vote"));
     let ds = c.baselines.iter().find(|b| b.name.contains("Dawid-Skene"));
     for (panel, (title, get, higher)) in panels.iter().zip(metrics) {
         let mut vals: Vec<f64> = c.points.iter().map(|p| get(&p.scores)).collect();
@@ -357,7 +360,10 @@ fn curve(path: &Path, c: &CurveRun) -> anyhow::Result<PathBuf> {
             });
         if let Some(b) = best {
             hline(
-                format!("best reporter ({})", b.name.trim_start_matches("baseline: ")),
+                format!(
+                    "best reporter ({})",
+                    b.name.trim_start_matches("baseline: ")
+                ),
                 get(&b.scores),
                 PALETTE[5],
             )?;

@@ -35,6 +35,12 @@ pub struct FuseOut {
     pub id: Option<String>,
     pub labels: Vec<String>,
     pub posteriors: Ordered<f64>,
+    /// The fusion method that produced the posteriors: `paper` (SPEC) or `adaptive`
+    /// (docs/METHOD.md).
+    pub method: &'static str,
+    /// How the labels were decided: `model` (posterior against the threshold) or
+    /// `majority_vote` (`adaptive`'s fallback until the model beats the vote on labelled rounds).
+    pub decision: &'static str,
     pub threshold: f64,
     /// Per-label thresholds, only in the per-label threshold mode.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -82,6 +88,12 @@ pub fn fuse_out(engine: &Engine, seq: u64, id: Option<String>, inf: &Inference) 
         id,
         labels: ontology.decode(&inf.pred),
         posteriors: Ordered((0..l).map(|k| (label(k), inf.q[k])).collect()),
+        method: engine.method().name(),
+        decision: if engine.serving_vote() {
+            "majority_vote"
+        } else {
+            "model"
+        },
         threshold: inf.thresholds.first().copied().unwrap_or(0.5),
         thresholds: (engine.threshold().mode() == ThresholdMode::PerLabel)
             .then(|| Ordered((0..l).map(|k| (label(k), inf.thresholds[k])).collect())),
@@ -154,6 +166,8 @@ pub fn feedback_out(engine: &Engine, done: &FeedbackDone) -> FeedbackOut {
 /// `GET /v1/state`.
 #[derive(Serialize)]
 pub struct StateOut {
+    /// The fusion method in force.
+    pub method: &'static str,
     pub reputations: Ordered<f64>,
     pub labelled_rounds: u64,
     pub threshold: f64,
@@ -214,6 +228,7 @@ pub fn state_out(eng: &Engine, rounds: u64) -> StateOut {
     let names = eng.reporters();
     let l = eng.ontology().len();
     StateOut {
+        method: eng.method().name(),
         reputations: Ordered(
             names
                 .iter()

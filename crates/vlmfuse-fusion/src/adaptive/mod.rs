@@ -389,7 +389,11 @@ impl Engine {
                 for k in 0..l {
                     let ri = pool.bank.report(pos, i, k) as usize;
                     let rj = pool.bank.report(pos, j, k) as usize;
-                    let (ei, ej) = if t[k] > 0.5 { (1 - ri, 1 - rj) } else { (ri, rj) };
+                    let (ei, ej) = if t[k] > 0.5 {
+                        (1 - ri, 1 - rj)
+                    } else {
+                        (ri, rj)
+                    };
                     g.pairs[base + k][ei + 2 * ej] += wgt;
                 }
             }
@@ -594,8 +598,8 @@ impl Engine {
                             Guardrail::Pool => {
                                 // The phi coefficient is symmetric in (i, j): the cell order
                                 // of the unordered pair does not matter.
-                                let c = ad.global.pairs[pair_index(n, i, j) * l + k]
-                                    .map(|v| v * scale);
+                                let c =
+                                    ad.global.pairs[pair_index(n, i, j) * l + k].map(|v| v * scale);
                                 let m: f64 = c.iter().sum();
                                 smoothed_phi_f64(c, cfg.rho_max) * m / (m + a.corr_shrink)
                             }
@@ -717,7 +721,13 @@ impl Engine {
             .map(|k| {
                 let z: f64 = (0..round.present.len())
                     .filter(|&i| round.present[i])
-                    .map(|i| if round.reports[i * l + k] != 0 { yes } else { no })
+                    .map(|i| {
+                        if round.reports[i * l + k] != 0 {
+                            yes
+                        } else {
+                            no
+                        }
+                    })
                     .sum();
                 clip(sigmoid(z), self.cfg.eps)
             })
@@ -846,7 +856,12 @@ impl Engine {
             Some(o) if self.cfg.adaptive.calibration => {
                 let calib = &self.ad().calib;
                 (0..l)
-                    .map(|k| clip(calib.apply(k, o.evidence[k], o.prior_logit[k]), self.cfg.eps))
+                    .map(|k| {
+                        clip(
+                            calib.apply(k, o.evidence[k], o.prior_logit[k]),
+                            self.cfg.eps,
+                        )
+                    })
                     .collect()
             }
             _ => lr.q.clone(),
@@ -894,7 +909,9 @@ impl Engine {
         };
         if self.cfg.adaptive.calibration {
             if let Some(o) = parts {
-                self.ad_mut().calib.push(&o.evidence, &o.prior_logit, &lr.truth);
+                self.ad_mut()
+                    .calib
+                    .push(&o.evidence, &o.prior_logit, &lr.truth);
             }
         }
         if let Some(pos) = pos {

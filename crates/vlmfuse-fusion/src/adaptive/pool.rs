@@ -219,14 +219,11 @@ impl Pool {
     /// small pool costs O(n + m log m)).
     pub fn rank(&self, v: &mut Vec<Nb>, m: usize) {
         let cmp = |a: &Nb, b: &Nb| {
-            b.key
-                .total_cmp(&a.key)
-                .then(b.sim.total_cmp(&a.sim))
-                .then(
-                    self.bank
-                        .seq(a.pos as usize)
-                        .cmp(&self.bank.seq(b.pos as usize)),
-                )
+            b.key.total_cmp(&a.key).then(b.sim.total_cmp(&a.sim)).then(
+                self.bank
+                    .seq(a.pos as usize)
+                    .cmp(&self.bank.seq(b.pos as usize)),
+            )
         };
         if m == 0 {
             v.clear();

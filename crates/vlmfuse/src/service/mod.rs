@@ -90,7 +90,16 @@ impl Service {
         let loaded = store
             .load_engine(&mut engine)
             .with_context(|| format!("rebuilding the engine from {}", store.path().display()))?;
+        if let Some(from) = &loaded.migrated_from {
+            tracing::warn!(
+                from = %from,
+                to = engine.method().name(),
+                "the data directory was written under another fusion method: every round was \
+                 inferred again and every credit recomputed under the configured one"
+            );
+        }
         tracing::info!(
+            method = engine.method().name(),
             rounds = loaded.rounds,
             labelled = loaded.labelled,
             secs = start.elapsed().as_secs_f64(),

@@ -211,6 +211,27 @@ fn flush_inserts(
                     }
                 }
             }
+            // The adaptive method learns from unlabelled rounds: each joins its pool now, in
+            // `seq` order, which is the order a rebuild replays them in.
+            let observe = shared
+                .engine
+                .read()
+                .unwrap_or_else(|e| e.into_inner())
+                .method()
+                != vlmfuse_fusion::Method::Paper;
+            if observe {
+                let mut eng = shared.engine.write().unwrap_or_else(|e| e.into_inner());
+                for (i, r) in all.iter().enumerate() {
+                    let seq = first_seq + i as u64;
+                    if let Err(e) = eng.observe(seq, &r.round, &r.inference) {
+                        shared.mark_broken(format!(
+                            "round {seq} committed but the engine could not learn from it ({e}); \
+                             restart to rebuild"
+                        ));
+                        break;
+                    }
+                }
+            }
             shared
                 .rounds
                 .store(first_seq + all.len() as u64, Ordering::SeqCst);
@@ -273,6 +294,7 @@ fn feedback(
     let fb = StoredFeedback {
         seq,
         labelled_order,
+        rounds_before: shared.rounds.load(Ordering::SeqCst),
         truth,
         outcome,
     };

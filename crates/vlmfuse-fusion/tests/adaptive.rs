@@ -1,0 +1,160 @@
+//! Invariants of the `adaptive` method (docs/METHOD.md): reputations stay a distribution, the
+//! state is a pure function of the event sequence (replays are deterministic), unlabelled rounds
+//! change its state (they teach) while paper ignores them, and with no label at all it decides
+//! like majority vote instead of switching every label on.
+
+mod common;
+
+use common::Lcg;
+use vlmfuse_fusion::{Engine, FusionConfig, Inference, LabelledRound, Method, Ontology, Round};
+
+fn names() -> Vec<String> {
+    vec!["a".into(), "b".into(), "c".into()]
+}
+
+/// Events of a synthetic stream: each round is observed when fused, and two in three are
+/// labelled right after.
+fn stream(
+    seed: u64,
+    rounds: usize,
+    l: usize,
+) -> Vec<(Vec<f64>, Vec<bool>, Vec<u8>, Option<Vec<u8>>)> {
+    let mut g = Lcg(seed);
+    (0..rounds)
+        .map(|t| {
+            let ctx: Vec<f64> = (0..6)
+                .map(|_| g.f() - 0.5 + if t % 3 == 0 { 1.0 } else { 0.0 })
+                .collect();
+            let truth: Vec<u8> = (0..l).map(|_| (g.f() < 0.25) as u8).collect();
+            let reports: Vec<u8> = (0..3 * l)
+                .map(|i| truth[i % l] ^ (g.f() < 0.1 + 0.15 * (i / l) as f64) as u8)
+                .collect();
+            let present = vec![true, t % 5 != 0, true];
+            let y = (t % 3 != 2).then_some(truth);
+            (ctx, present, reports, y)
+        })
+        .collect()
+}
+
+/// Runs the stream through a fresh engine the way the service does (infer, observe, credit,
+/// apply) and returns the engine and every inference.
+fn run(
+    cfg: &FusionConfig,
+    events: &[(Vec<f64>, Vec<bool>, Vec<u8>, Option<Vec<u8>>)],
+) -> (Engine, Vec<Inference>) {
+    let mut e = Engine::new(cfg.clone(), Ontology::paper(), names()).unwrap();
+    let mut infs = Vec::new();
+    for (t, (ctx, present, reports, y)) in events.iter().enumerate() {
+        let round = Round {
+            context: e.normalise_context(ctx).unwrap(),
+            present: present.clone(),
+            reports: reports.clone(),
+        };
+        let seq = t as u64;
+        let inf = e.infer(&round);
+        e.observe(seq, &round, &inf).unwrap();
+        if let Some(y) = y {
+            let o = e.credit(&inf.signals, &inf.w_used, y, seq);
+            let w: f64 = o.w_after.iter().sum();
+            assert!((w - 1.0).abs() < 1e-12, "round {t}: weights sum to {w}");
+            assert!(
+                o.w_after.iter().all(|&w| w > 0.0),
+                "round {t}: {:?}",
+                o.w_after
+            );
+            e.apply(
+                &LabelledRound {
+                    seq,
+                    round,
+                    truth: y.clone(),
+                    q: inf.q.clone(),
+                },
+                Some(&o),
+            )
+            .unwrap();
+        }
+        infs.push(inf);
+    }
+    (e, infs)
+}
+
+fn adaptive() -> FusionConfig {
+    FusionConfig {
+        method: Method::Adaptive,
+        k: 10,
+        k_prior: 12,
+        ..FusionConfig::default()
+    }
+}
+
+#[test]
+fn weights_sum_to_one_and_replays_are_deterministic() {
+    let l = Ontology::paper().len();
+    let events = stream(11, 240, l);
+    let (a, ia) = run(&adaptive(), &events);
+    let (b, ib) = run(&adaptive(), &events);
+    assert_eq!(a.reputations(), b.reputations());
+    let s: f64 = a.reputations().iter().sum();
+    assert!((s - 1.0).abs() < 1e-12, "{s}");
+    for (x, y) in ia.iter().zip(&ib) {
+        assert_eq!(x.q, y.q);
+        assert_eq!(x.pred, y.pred);
+        assert_eq!(x.thresholds, y.thresholds);
+    }
+    assert_eq!(a.labelled(), 160);
+}
+
+#[test]
+fn unlabelled_rounds_teach_adaptive_and_not_paper() {
+    let l = Ontology::paper().len();
+    let events = stream(5, 150, l);
+    // The same labelled rounds, with and without the unlabelled ones in between.
+    let labelled_only: Vec<_> = events.iter().filter(|e| e.3.is_some()).cloned().collect();
+    let probe = &events[149];
+    let probe_round = |e: &Engine| {
+        let round = Round {
+            context: e.normalise_context(&probe.0).unwrap(),
+            present: probe.1.clone(),
+            reports: probe.2.clone(),
+        };
+        e.infer(&round).q
+    };
+    let (pa, _) = run(&FusionConfig::paper(), &events);
+    let (pb, _) = run(&FusionConfig::paper(), &labelled_only);
+    assert_eq!(
+        probe_round(&pa),
+        probe_round(&pb),
+        "paper ignores unlabelled rounds"
+    );
+    let (aa, _) = run(&adaptive(), &events);
+    let (ab, _) = run(&adaptive(), &labelled_only);
+    assert_ne!(
+        probe_round(&aa),
+        probe_round(&ab),
+        "adaptive learns from unlabelled rounds"
+    );
+}
+
+#[test]
+fn with_no_label_it_votes_instead_of_switching_every_label_on() {
+    let l = Ontology::paper().len();
+    let events: Vec<_> = stream(9, 60, l)
+        .into_iter()
+        .map(|(c, p, r, _)| (c, p, r, None))
+        .collect();
+    let (e, infs) = run(&adaptive(), &events);
+    assert_eq!(e.labelled(), 0);
+    assert!(e.serving_vote());
+    for ((_, present, reports, _), inf) in events.iter().zip(&infs) {
+        for k in 0..l {
+            let members: Vec<usize> = (0..3).filter(|&i| present[i]).collect();
+            let yes = members.iter().filter(|&&i| reports[i * l + k] != 0).count();
+            let vote = 2 * yes > members.len();
+            assert_eq!(inf.pred[k] != 0, vote, "label {k}");
+        }
+    }
+    // SPEC's method on the same fresh state puts every label on (q = pi = 0.5 >= 0.5).
+    let (p, pinfs) = run(&FusionConfig::paper(), &events[..1]);
+    assert_eq!(p.labelled(), 0);
+    assert!(pinfs[0].pred.iter().all(|&b| b == 1));
+}
