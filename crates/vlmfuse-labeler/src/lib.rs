@@ -6,25 +6,34 @@
 //! * [`EmbeddingLabeler`] (the offline default): sentence embeddings (all-MiniLM-L6-v2) of each
 //!   clause against paraphrase prototypes per label, with explicit negation handling, because
 //!   embeddings alone cannot tell "brake" from "no need to brake".
-//! * [`GgufLabeler`]: a small in-process base LLM (gemma-3-270m) scored with yes/no likelihoods,
-//!   for when no embedding prototypes are written for a custom ontology.
-//! * [`OpenAiLabeler`]: any OpenAI-compatible chat API, strict JSON validated against the ontology.
+//! * [`GgufLabeler`]: the paper's LLM labelling step in process: an instruct LLM from a GGUF file
+//!   (Llama 3.x, Qwen2/3, Gemma 3) under constrained decoding, so that its answer is always a
+//!   valid list of ontology ids.
+//! * [`OpenAiLabeler`]: any OpenAI-compatible chat API with the same prompt, its answer validated
+//!   against the ontology.
+//!
+//! Every output carries [`Evidence`]: which clause turned a label on (or was discounted as
+//! negated or hedged), so that users can see why a label was chosen.
 
 pub mod assets;
+mod candle_encoder;
 mod embedding;
 mod encoder;
 mod error;
 pub mod eval;
 mod gguf;
+pub mod llm;
 mod negation;
 mod ontology;
 mod openai;
 mod sp_tokenizer;
+pub mod tiny_gguf;
 
+pub use candle_encoder::CandleEncoder;
 pub use embedding::{ClauseSims, EmbeddingConfig, EmbeddingLabeler};
 pub use encoder::SentenceEncoder;
 pub use error::{LabelerError, LabelerErrorKind};
-pub use gguf::{GgufConfig, GgufLabeler};
+pub use gguf::{Generation, GgufConfig, GgufLabeler, TemplateSource};
 pub use negation::{is_negated, split_clauses};
 pub use ontology::{LabelDef, Ontology};
 pub use openai::{OpenAiConfig, OpenAiLabeler};
@@ -41,6 +50,38 @@ pub struct LabelScore {
     pub score: f32,
 }
 
+/// What produced a piece of evidence.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum EvidenceSource {
+    /// A lexical rule of the annotation guidelines (e.g. "slow down" is braking).
+    Rule,
+    /// Sentence-embedding similarity to a paraphrase of the label.
+    Embedding,
+    /// An LLM chose the label reading the whole answer.
+    Llm,
+}
+
+/// Why a label is on, or why a mention of it did not count.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Evidence {
+    /// Label id.
+    pub label: String,
+    /// The clause of the answer the evidence comes from; empty for LLM labelers, which read the
+    /// whole answer.
+    pub clause: String,
+    /// Backend-specific strength (rule: 1; embedding: cosine; LLM: the model's probability).
+    pub score: f32,
+    /// The clause negates the label ("no need to brake").
+    pub negated: bool,
+    /// The clause hedges it ("be prepared to stop", "brake if ...").
+    pub hedged: bool,
+    pub source: EvidenceSource,
+    /// Whether this evidence turned the label on; negated or hedged mentions are listed too, with
+    /// `accepted: false`, so a user can see that they were read and discounted.
+    pub accepted: bool,
+}
+
 /// Result of labelling one text.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct LabelerOutput {
@@ -48,6 +89,9 @@ pub struct LabelerOutput {
     pub labels: Vec<String>,
     /// One score per ontology label, in ontology order, so callers can re-threshold.
     pub scores: Vec<LabelScore>,
+    /// Evidence for every label that is on, and for discounted mentions.
+    #[serde(default)]
+    pub evidence: Vec<Evidence>,
 }
 
 impl LabelerOutput {
@@ -69,7 +113,11 @@ impl LabelerOutput {
                 score: s,
             })
             .collect();
-        Self { labels, scores }
+        Self {
+            labels,
+            scores,
+            evidence: Vec::new(),
+        }
     }
 
     /// Builds an output from ontology-ordered scores, a label being on when its score reaches its
@@ -92,4 +140,20 @@ pub trait Labeler: Send + Sync {
     /// Stable name for logs and metrics.
     fn name(&self) -> &str;
     fn label<'a>(&'a self, text: &'a str) -> BoxFuture<'a, Result<LabelerOutput, LabelerError>>;
+
+    /// Labels several texts (the answers of one round). The embedding labeler overrides this to
+    /// encode every clause of every text in one pass; the default labels them one after another.
+    /// Outputs are in input order; the first error fails the batch.
+    fn label_batch<'a>(
+        &'a self,
+        texts: &'a [&'a str],
+    ) -> BoxFuture<'a, Result<Vec<LabelerOutput>, LabelerError>> {
+        Box::pin(async move {
+            let mut out = Vec::with_capacity(texts.len());
+            for t in texts {
+                out.push(self.label(t).await?);
+            }
+            Ok(out)
+        })
+    }
 }
