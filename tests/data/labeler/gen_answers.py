@@ -1,19 +1,21 @@
 #!/usr/bin/env python3
-"""Generates answers.jsonl: synthetic but realistic VLM answers with their true label sets.
+"""Generates the 360 template answers of answers.jsonl (ids a-0000 ... a-0359, all "train").
 
-Deterministic (fixed seed, no dependencies beyond the standard library): re-running it must give
-byte-identical output, so the committed file and this script never drift apart.
+Deterministic (fixed seed, standard library only): re-running it gives byte-identical lines, and
+`check_answers.py` verifies that the template lines of answers.jsonl are exactly this output.
 
-Why synthetic: no package ships real VLM answers on dashcam clips with labels. To keep a labeler
-from succeeding by template matching, every label has many paraphrases, answers come in several
-layouts, hedged recommendations ("might need to brake") count as positive, and negated mentions
-("no need to brake", "there is no traffic light") are frequent and count as negative. Mentions
-of other road users' actions without a recommendation for the ego vehicle are avoided, because
-their true label would be debatable.
+The text comes from phrase templates; the labels are NOT the scenario the generator drew but what
+the text says, by GUIDELINES.md (`guideline_labels` below): hedged actions ("possibly brake",
+"be ready to stop", "the driver may need to ...") are negative, negated mentions are negative,
+scene facts implied by the text count ("the light is red" is a traffic light ahead, "yield to cars
+already in the roundabout" is a junction ahead), and explicit slowing for the weather is both
+`brake` and `adjust_speed_due_to_weather`.
 
-Split: the first 150 lines are "train" (used to tune thresholds), the rest "test".
+Why templates are not enough: a matcher tuned on one generator's phrasing learns that generator.
+These answers are the train split's bulk; the hand-written answers (source "handwritten") add the
+styles real VLMs write, and the whole test split is hand-written.
 
-Usage: python3 gen_answers.py > answers.jsonl
+Usage: python3 gen_answers.py   (prints the template lines; see check_answers.py)
 """
 import json
 import re
@@ -22,7 +24,6 @@ import sys
 
 SEED = 20261122
 N = 360
-N_TRAIN = 150
 
 R = random.Random(SEED)
 
@@ -250,6 +251,76 @@ EXCLUSIVE_NORMAL = {"turn_left", "turn_right", "brake", "stop", "merge", "adjust
                     "yield_to_traffic", "accelerate", "check_blind_spot"}
 
 
+LAYOUTS = ["three_step", "markdown_three_part", "step_inline", "numbered_paren", "key_value"]
+
+# ---------------------------------------------------------------------------------------------
+# Labelling by GUIDELINES.md. The generator's scenario ("intent") labels are not the answer's
+# labels: the text decides. These tables encode the guideline rules that the template phrases
+# touch; the CHANGES section of GUIDELINES.md lists what they changed.
+
+# Hedges (GUIDELINES "Hedges"): an uncertainty adverb or a "be ready to" makes the action a
+# possibility, not a recommendation. "consider whether to" and "carefully" are not hedges.
+HEDGE_WORDS = {"possibly ", "probably ", "be ready to ", "maybe "}
+# A modal of possibility in the lead scopes over every manoeuvre listed after it.
+HEDGE_LEADS = {"The car might need to", "The driver may need to"}
+# Weather phrases with explicit slowing language also give `brake` (GUIDELINES "brake").
+WEATHER_SLOWING = {
+    "reduce speed because of the wet road", "drive slower given the weather",
+    "lower your speed for the rain", "slow down due to the poor visibility in the fog",
+    "take it slower on the icy surface", "drive more cautiously and slowly in the snow",
+    "cut your speed because the road is slick",
+}
+# Manoeuvre phrases that name a junction or a turn onto another road: the junction is a scene
+# fact whether or not the manoeuvre itself is hedged (GUIDELINES "junction_ahead").
+JUNCTION_PHRASES = {
+    "turn left at the intersection", "take the next left", "steer left onto the side road",
+    "go left at the junction", "swing left into the next street", "make a left onto the cross street",
+    "turn right at the intersection", "take the next right", "steer right onto the side road",
+    "go right at the junction", "swing right into the next street", "make a right onto the cross street",
+    "yield to cars already in the roundabout",
+}
+# Scene phrases that do not assert a marked crossing (pedestrians in general).
+NOT_A_CROSSING = {"a few pedestrians are crossing in front of the car"}
+# Rationale clauses that assert scene facts.
+RATIONALE_FACTS = {
+    "the light is red": ["traffic_light_ahead"],
+    "the signal controls the intersection": ["traffic_light_ahead", "junction_ahead"],
+    "vehicles may enter from the side road": ["junction_ahead"],
+    "pedestrians may step onto the crossing at any moment": ["pedestrian_crossing_ahead"],
+}
+
+
+# The ontology's order (SPEC section 1); labels are written in this order.
+ONTOLOGY = ["turn_left", "turn_right", "brake", "accelerate", "stop", "traffic_light_ahead",
+            "junction_ahead", "pedestrian_crossing_ahead", "merge", "maintain_safe_distance",
+            "check_blind_spot", "adjust_speed_due_to_weather", "yield_to_traffic", "drive_as_normal"]
+
+
+def guideline_labels(meta):
+    out = set()
+    presupposed = set()
+    for label, phrase in meta["scene"].items():
+        if phrase not in NOT_A_CROSSING:
+            out.add(label)
+    hedged_lead = meta["lead"] in HEDGE_LEADS
+    for label, hedge, phrase in meta["acts"]:
+        if phrase in JUNCTION_PHRASES:
+            presupposed.add("junction_ahead")
+        if hedged_lead or hedge in HEDGE_WORDS:
+            continue
+        out.add(label)
+        # "Reduce speed because of the wet road. There is no need to brake." denies the label's
+        # own word: the denial wins (GUIDELINES G8).
+        if phrase in WEATHER_SLOWING and meta.get("negated") != "brake":
+            out.add("brake")
+    for bit in meta["rationale"]:
+        presupposed.update(RATIONALE_FACTS.get(bit, []))
+    # An explicit denial in the scene description ("there are no crossroads in sight") beats a
+    # presupposition of the same element elsewhere (GUIDELINES "Contradictions").
+    out.update(presupposed - meta["denied"])
+    return sorted(out, key=ONTOLOGY.index)
+
+
 def cap(s):
     return s[:1].upper() + s[1:] if s else s
 
@@ -286,12 +357,17 @@ def make_answer():
     parts = []
     setting = pick(SETTINGS).format(adj=pick(ADJ)) + pick(TIME)
     parts.append(setting)
+    meta = {"scene": {}, "acts": [], "lead": None, "rationale": [], "weather_bad": bad_weather}
     for l in scene_on:
-        parts.append(pick(SCENE_POS[l]))
+        p = pick(SCENE_POS[l])
+        meta["scene"][l] = p
+        parts.append(p)
     # negated scene mentions of absent scene labels
     absent_scene = [l for l in SCENE_NEG if l not in scene_on]
     R.shuffle(absent_scene)
+    meta["denied"] = set()
     for l in absent_scene[: R.choice([0, 0, 1, 1, 2])]:
+        meta["denied"].add(l)
         parts.append(pick(SCENE_NEG[l]))
     if bad_weather:
         parts.append(pick(WEATHER_BAD))
@@ -315,13 +391,17 @@ def make_answer():
     phrases = []
     for a in acts:
         h = pick(HEDGES)
-        phrases.append(pick(ACT_POS[a]).format(h=h).strip())
+        p = pick(ACT_POS[a])
+        meta["acts"].append((a, h, p.format(h="")))
+        phrases.append(p.format(h=h).strip())
     lead = pick(HEDGE_LEAD)
+    meta["lead"] = lead
     man = lead + " " + join_list(phrases) + "."
     # negated actions of absent actions
     neg_candidates = [a for a, v in ACT_NEG.items() if v and a not in labels]
     if R.random() < 0.45 and neg_candidates:
         a = pick(neg_candidates)
+        meta["negated"] = a
         man += " " + cap(pick(ACT_NEG[a])) + "."
     if R.random() < 0.25:
         man = pick(["Recommended action: ", "Action: ", "Suggested manoeuvre: ", ""]) + man
@@ -330,6 +410,7 @@ def make_answer():
     rat_keys = [l for l in sorted(labels) if l in RATIONALE]
     R.shuffle(rat_keys)
     rat_bits = [pick(RATIONALE[l]) for l in rat_keys[: R.choice([1, 1, 2])]]
+    meta["rationale"] = rat_bits
     rationale = pick(RAT_LEAD) + " " + " and ".join(rat_bits) + "."
     if bad_weather and "adjust_speed_due_to_weather" not in labels:
         # weather mentioned, but the answer says it does not matter
@@ -353,7 +434,8 @@ def make_answer():
     else:
         text = f"Scene: {scene}\nAction: {man}\nReasoning: {rationale}"
     text = re.sub(r"\b([Aa]) ([aeiou])", r"\1n \2", text)
-    return text, sorted(labels)
+    meta["layout"] = LAYOUTS[layout]
+    return text, guideline_labels(meta), meta
 
 
 def main():
@@ -361,11 +443,12 @@ def main():
     seen = set()
     i = 0
     while i < N:
-        text, labels = make_answer()
+        text, labels, meta = make_answer()
         if text in seen:
             continue
         seen.add(text)
-        rec = {"id": f"a-{i:04d}", "split": "train" if i < N_TRAIN else "test", "text": text, "labels": labels}
+        rec = {"id": f"a-{i:04d}", "split": "train", "text": text, "labels": labels,
+               "source": "template", "style": meta["layout"]}
         out.write(json.dumps(rec, ensure_ascii=False) + "\n")
         i += 1
 
