@@ -26,7 +26,9 @@ pub mod llm;
 mod negation;
 mod ontology;
 mod openai;
+pub mod rules;
 mod sp_tokenizer;
+pub mod text;
 pub mod tiny_gguf;
 
 pub use candle_encoder::CandleEncoder;

@@ -124,10 +124,8 @@ impl Pipeline {
                         .model_path
                         .clone()
                         .unwrap_or_else(|| vlmfuse_labeler::assets::asset_paths().gemma_gguf);
-                    let mut gc = vlmfuse_labeler::GgufConfig::new(path);
-                    if let Some(t) = lc.threshold {
-                        gc.threshold = t;
-                    }
+                    // The GGUF labeler decodes a label list; it has no threshold.
+                    let gc = vlmfuse_labeler::GgufConfig::new(path);
                     vlmfuse_labeler::GgufLabeler::load(ontology, gc)
                         .map(|l| Arc::new(l) as Arc<dyn Labeler>)
                         .map_err(|e| format!("gguf labeler: {e}"))
