@@ -94,10 +94,15 @@ const OTHERS: &[&str] = &[
     "car", "cars", "vehicle", "vehicles", "truck", "trucks", "lorry", "lorries", "van", "vans",
     "bus", "buses", "coach", "cyclist", "cyclists", "bike", "bikes", "motorbike", "motorcycle",
     "motorcyclist", "pedestrian", "pedestrians", "people", "person", "traffic", "others",
-    "it", "they", "them", "he", "she", "someone", "somebody", "one", "taxi", "suv", "pickup",
+    "they", "them", "he", "she", "someone", "somebody", "taxi", "suv", "pickup",
     "ambulance", "tram", "tractor", "jogger", "man", "woman", "child", "children", "kids",
     "kid", "driver", "drivers", "lanes", "lane", "roads", "road", "leader", "hatchback",
     "sedan", "lead", "queue", "camera",
+];
+/// Advice words that make the phrase a recommendation to the ego vehicle wherever they stand.
+const STRONG_ADVICE: &[&str] = &[
+    "should", "must", "need", "needs", "recommend", "recommended", "suggest", "best",
+    "advisable", "wise", "please", "try", "ought", "advise", "better",
 ];
 const EGO: &[&str] = &["you", "we", "i", "us", "ego", "our", "me", "my", "yourself", "let"];
 /// After these words a verb is advice to the ego vehicle whatever came before (G1).
@@ -335,7 +340,7 @@ fn doubted(s: &Sentence, a: usize) -> bool {
         any_seq_at(
             s,
             k,
-            &["whether", "not sure", "unsure", "unclear if", "hard to tell", "might be", "may be", "could be", "possibly a", "perhaps a", "maybe a"],
+            &["not sure", "unsure", "unclear", "hard to tell", "difficult to tell", "can not tell", "might be a", "may be a", "could be a", "possibly a", "perhaps a", "maybe a", "whether it is", "whether there is", "whether this is", "whether that is", "if it is a", "if there is a", "might be the", "may be the", "could be the"],
         )
     })
 }
@@ -440,7 +445,10 @@ fn hedged(s: &Sentence, a: usize, b: usize) -> bool {
         ) {
             return true;
         }
-        if ADVERBS.contains(&w) {
+        // An adverb in the mention's own item, or alone after a comma ("brake, probably").
+        if ADVERBS.contains(&w)
+            && (commas == 0 || k + 1 >= s.words.len() || PUNCT_BREAK.contains(&s.w(k + 1)))
+        {
             return true;
         }
         if is_item_break(w) {
@@ -475,6 +483,9 @@ fn other_agent(s: &Sentence, a: usize) -> bool {
         if ADVICE.contains(last) {
             return false;
         }
+    }
+    if pre.iter().any(|w| STRONG_ADVICE.contains(w)) {
+        return false;
     }
     let has_other = pre.iter().any(|w| OTHERS.contains(w));
     // The phrase must open with a noun phrase ("the car ahead is braking"); one that opens with
@@ -560,6 +571,7 @@ fn build() -> Vec<LabelRules> {
             re(&format!(r"\b{d} (hand )?turn(ing)? (lane|lanes|signal|arrow|only|pocket|bay|traffic|vehicles|cars)\b")),
             re(&format!(r"\b{d} turning\b")),
             re(&format!(r"\bno {d} turn\b")),
+            re(&format!(r"\b(indicates|indicate|requires|require|shows|show|for|signals|means|suggests|allows|prohibited|banned|needs|need|planning|planned|plan|route has|route is) (a |the |another )?{d} turn\b")),
         ]
     };
     let mut v = Vec::new();
@@ -717,6 +729,8 @@ fn build() -> Vec<LabelRules> {
             sc(r"\bpedestrian crossings?\b"),
             sc(r"\b(pelican|puffin|toucan|school|raised|marked|signalised|signal controlled|signalized) crossings?\b"),
             sc(r"\b(lollipop (lady|man)|crossing guard)\b"),
+            sc(r"\b(pedestrian|pedestrians|people|someone|walkers|children|kids|schoolchildren|man|woman|person|jogger|pedestrians who|pram|pushchair)\b[a-z ,]{0,60}\b(onto|on|at|near|to|towards|approaching|using|use|beside|off|from) (?P<m>(the|a) crossing)\b"),
+            sc(r"\b(?P<m>(the|a) crossing)\b[a-z ,]{0,40}\b(pedestrian|pedestrians|people|walkers|someone|children|kids)\b"),
         ],
         vetoes: vec![
             re(r"\b(level|railway|rail|train|informal|unmarked) crossing\b"),
@@ -895,11 +909,21 @@ pub fn mentions(sents: &[Sentence]) -> Vec<Mention> {
                 .collect();
             let mut seen: Vec<(usize, usize)> = Vec::new();
             for r in &lr.rules {
-                for m in r.re.find_iter(&s.norm) {
-                    if vetoes.iter().any(|&(vs, ve)| vs < m.end() && m.start() < ve) {
+                // A rule may mark the mention inside its match with a group `m` ("pedestrians
+                // waiting at (the crossing)").
+                let spans: Vec<(usize, usize)> = r
+                    .re
+                    .captures_iter(&s.norm)
+                    .map(|c| {
+                        let g = c.name("m").or_else(|| c.get(0)).expect("group 0 exists");
+                        (g.start(), g.end())
+                    })
+                    .collect();
+                for (ms_, me_) in spans {
+                    if vetoes.iter().any(|&(vs, ve)| vs < me_ && ms_ < ve) {
                         continue;
                     }
-                    let (a, b) = word_range(s, m.start(), m.end());
+                    let (a, b) = word_range(s, ms_, me_);
                     if seen.iter().any(|&(x, y)| x < b && a < y) {
                         continue;
                     }
@@ -985,9 +1009,9 @@ pub fn mentions(sents: &[Sentence]) -> Vec<Mention> {
             continue;
         }
         let s = &sents[m.sentence];
-        let mut k = m.b;
+        let mut k = m.a;
         while k < s.words.len() && k < m.b + 6 && !["onto", "into", "on"].contains(&s.w(k)) {
-            if is_break(s.w(k)) && s.w(k) != "out" {
+            if k >= m.b && is_break(s.w(k)) && s.w(k) != "out" {
                 break;
             }
             k += 1;

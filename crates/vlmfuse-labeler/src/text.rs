@@ -112,7 +112,9 @@ const LEXICON: &str = "ahead accelerate accelerating acceleration accelerator ad
     signals signalised signalized slip slippery slow slowing slowly sleet slush snow speed \
     spot stop stopping straight street stationary tailgate tailgating through toucan traffic \
     turn turning vehicle visibility wait waiting weather wet yellow yield yielding zebra \
-    accelerate route going coming ahead behind slowdown";
+    accelerate route going coming ahead behind slowdown snowing snowy raining rainy misty \
+    frosty windy drizzling pouring spray slushy showers downpour hail storm stormy gusty \
+    shower sunny cloudy overcast freezing flooded flooding puddle puddles";
 
 /// Ordinary words that are one edit away from a lexicon word and must stay as written.
 const KEEP: &[&str] = &[
