@@ -3,9 +3,10 @@
 //! The fusion engine only sees binary reports per label, so everything a VLM says must first be
 //! turned into a label set. Three backends trade accuracy for cost and independence:
 //!
-//! * [`EmbeddingLabeler`] (the offline default): sentence embeddings (all-MiniLM-L6-v2) of each
-//!   clause against paraphrase prototypes per label, with explicit negation handling, because
-//!   embeddings alone cannot tell "brake" from "no need to brake".
+//! * [`EmbeddingLabeler`] (the offline default): the annotation guidelines' rules
+//!   (`tests/data/labeler/GUIDELINES.md`: negation, hedge and agent scopes, lexical label rules)
+//!   plus sentence embeddings (all-MiniLM-L6-v2) for the paraphrases the rules do not list, all
+//!   clauses of a round in one encoder pass.
 //! * [`GgufLabeler`]: the paper's LLM labelling step in process: an instruct LLM from a GGUF file
 //!   (Llama 3.x, Qwen2/3, Gemma 3) under constrained decoding, so that its answer is always a
 //!   valid list of ontology ids.
@@ -23,7 +24,6 @@ mod error;
 pub mod eval;
 mod gguf;
 pub mod llm;
-mod negation;
 mod ontology;
 mod openai;
 pub mod rules;
@@ -32,11 +32,10 @@ pub mod text;
 pub mod tiny_gguf;
 
 pub use candle_encoder::CandleEncoder;
-pub use embedding::{ClauseSims, EmbeddingConfig, EmbeddingLabeler};
+pub use embedding::{EmbeddingConfig, EmbeddingLabeler, ItemMatch, Reading};
 pub use encoder::SentenceEncoder;
 pub use error::{LabelerError, LabelerErrorKind};
 pub use gguf::{Generation, GgufConfig, GgufLabeler, TemplateSource};
-pub use negation::{is_negated, split_clauses};
 pub use ontology::{LabelDef, Ontology};
 pub use openai::{OpenAiConfig, OpenAiLabeler};
 pub use sp_tokenizer::SpTokenizer;
@@ -120,13 +119,6 @@ impl LabelerOutput {
             scores,
             evidence: Vec::new(),
         }
-    }
-
-    /// Builds an output from ontology-ordered scores, a label being on when its score reaches its
-    /// threshold (the rule the embedding and GGUF labelers share).
-    pub(crate) fn thresholded(ontology: &Ontology, scores: &[f32], thresholds: &[f32]) -> Self {
-        let on: Vec<bool> = scores.iter().zip(thresholds).map(|(s, t)| s >= t).collect();
-        Self::from_decisions(ontology, scores, &on)
     }
 
     pub fn score_of(&self, id: &str) -> Option<f32> {

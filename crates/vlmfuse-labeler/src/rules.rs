@@ -777,7 +777,7 @@ fn build() -> Vec<LabelRules> {
             a(r"\bkeep (your |a |the )?distance\b"),
             a(r"\bwide berth\b"),
             inv(r"\btailgat(e|es|ing)\b"),
-            inv(r"\b(follow|following|drive|driving|get|getting|sit|sitting) (so |too )(close|closely)\b"),
+            inv(r"\b(follow|following|drive|driving|get|getting|sit|sitting|stay|staying|creep|creeping)( [a-z]+){0,3} (so|too) (close|closely)\b"),
             inv(r"\bride (his|her|their|its|the|that|this) (bumper|tail)\b"),
             inv(r"\btoo close (to|behind)\b"),
         ],
@@ -877,6 +877,57 @@ fn build() -> Vec<LabelRules> {
 fn rules() -> &'static [LabelRules] {
     static R: OnceLock<Vec<LabelRules>> = OnceLock::new();
     R.get_or_init(build)
+}
+
+/// The items (list entries, clause parts) of a sentence as word ranges: what the embedding
+/// matcher compares with its paraphrases.
+pub fn items(s: &Sentence) -> Vec<(usize, usize)> {
+    let mut out = Vec::new();
+    let mut start = 0;
+    for k in 0..=s.words.len() {
+        if k == s.words.len() || is_item_break(s.w(k)) {
+            if k > start {
+                out.push((start, k));
+            }
+            start = k + 1;
+        }
+    }
+    out
+}
+
+/// Polarity of a whole item, for a paraphrase found by similarity: (negated, hedged, other
+/// road user).
+pub fn item_polarity(s: &Sentence, a: usize, b: usize) -> (bool, bool, bool) {
+    let neg = (a..b).any(|k| {
+        (NEG_CUES.contains(&s.w(k)) || any_seq_at(s, k, NEG_CUES2)) && !any_seq_at(s, k, DOUBLE_NEG)
+    }) || negation_cue(s, a, b).is_some();
+    (neg, hedged(s, a, b), other_agent(s, a))
+}
+
+/// Words that cannot open an imperative: determiners, pronouns, prepositions, copulas.
+const NOT_IMPERATIVE: &[&str] = &[
+    "the", "a", "an", "this", "that", "these", "those", "there", "it", "its", "we", "our",
+    "they", "their", "he", "she", "his", "her", "i", "my", "you", "your", "no", "not",
+    "is", "are", "was", "were", "be", "been", "in", "on", "at", "of", "for", "from", "with",
+    "by", "to", "as", "because", "since", "given", "due", "all", "some", "any", "each",
+    "both", "several", "many", "one", "two", "three", "other", "another", "also", "very",
+    "scene", "rationale", "reason", "reasoning", "why", "description", "situation", "note",
+    "weather", "road", "traffic", "visibility", "safety",
+];
+
+/// Whether an item reads as advice to the ego vehicle (an imperative, or a phrase with an
+/// advice word), rather than a description: only advice can carry a manoeuvre label.
+pub fn advice_item(s: &Sentence, a: usize, b: usize) -> bool {
+    if (a..b).any(|k| STRONG_ADVICE.contains(&s.w(k)) || ["consider", "recommend", "suggest", "let", "want", "plan"].contains(&s.w(k))) {
+        return true;
+    }
+    let skip = ["then", "and", "so", "now", "just", "also", "please", "carefully", "gently", "first", "next", "finally", ":", ","];
+    let Some(first) = (a..b).find(|&k| !skip.contains(&s.w(k))) else {
+        return false;
+    };
+    let w = s.w(first);
+    let statement = (first + 1..b).any(|k| ["is", "are", "was", "were", "has", "have", "seems", "appears"].contains(&s.w(k)));
+    !NOT_IMPERATIVE.contains(&w) && !w.chars().all(|c| c.is_ascii_digit()) && !statement
 }
 
 /// Ids the rules know.
