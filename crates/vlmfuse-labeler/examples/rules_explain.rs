@@ -5,6 +5,16 @@ use vlmfuse_labeler::{rules, text};
 fn main() {
     let mut t = String::new();
     std::io::stdin().read_to_string(&mut t).unwrap();
+    if std::env::args().any(|a| a == "--lines") {
+        // One answer per paragraph (blank-line separated): labels only.
+        for para in t.split("\n\n").filter(|p| !p.trim().is_empty()) {
+            let s = text::sentences(para);
+            let m = rules::mentions(&s);
+            let on: Vec<&str> = rules::decide(&s, &m).into_iter().filter(|d| d.1).map(|d| d.0).collect();
+            println!("{:?}\n   => {on:?}", para.trim());
+        }
+        return;
+    }
     let s = text::sentences(&t);
     for (i, x) in s.iter().enumerate() {
         println!("[{i}] {}", x.norm);

@@ -335,6 +335,9 @@ fn negated_scene(s: &Sentence, a: usize, b: usize) -> bool {
 /// G12: the answer doubts that the thing is there ("hard to tell whether it is a light at
 /// all"). Counts as a denial.
 fn doubted(s: &Sentence, a: usize) -> bool {
+    if s.question && !(0..a).any(|k| ["stop", "turn", "slow", "yield", "merge", "brake", "wait"].contains(&s.w(k))) {
+        return true;
+    }
     let from = a.saturating_sub(8);
     (from..a).any(|k| {
         any_seq_at(
@@ -629,7 +632,7 @@ fn build() -> Vec<LabelRules> {
             a(r"\bbring(ing)? (the |your |our )?(speed|pace) (back )?up\b"),
             a(r"\bbuild speed\b"),
             a(r"\bget up to (the |motorway |highway |freeway |road |traffic )?speed\b"),
-            a(r"\b(put your foot down|step on it|floor it|gun it|get a move on|press the (accelerator|gas)|give it (some )?gas|more throttle|open it up)\b"),
+            a(r"\b(put your foot down|step on it|floor it|gun it|punch it|get a move on|press the (accelerator|gas)|give it (some )?gas|more throttle|open it up|(hit|step on|press) the (gas|throttle|accelerator|pedal))\b"),
             a(r"\bspeed : (increase|up|raise|accelerate)\b"),
             a(r"\b(return|back|come back|get back) (up )?to the (speed )?limit\b"),
             a(r"\bincrease speed back\b"),
@@ -647,7 +650,8 @@ fn build() -> Vec<LabelRules> {
             a(r"\bto a (complete |full |gradual |smooth |controlled |dead |safe )?(stop|halt|standstill)\b"),
             a(r"\bhalt(s|ing)?\b"),
             a(r"\bpull(ing)? (up|over)\b"),
-            a(r"\b(remain|stay|staying|remaining|keep|be) (stationary|stopped|put|at a standstill|halted)\b"),
+            a(r"\b(remain|stay|staying|remaining|keep|be) (stationary|stopped|at a standstill|halted)\b"),
+            a(r"\bmak(e|ing) (a |the )?(full |complete |short )?stop\b"),
             a(r"\bhold(ing)? (at|behind) the (line|stop line|lights)\b"),
             a(r"\bwait(ing)? (at|behind|before) (the |a )?(line|stop line|give way line|lights|light|signal|signals|red|crossing|zebra|crosswalk|junction|barrier|stop sign|white line|kerb|curb)\b"),
             a(r"\bwait(ing)? (for|until) (the )?(green|light to|lights to|signal to|light changes|lights change|light turns|lights turn)\b"),
@@ -765,7 +769,7 @@ fn build() -> Vec<LabelRules> {
         id: "maintain_safe_distance",
         rules: vec![
             a(r"\b(keep|keeping|maintain|maintaining|leave|leaving|hold|holding|allow|allowing|give|giving|preserve|ensure|keep up|have|create|creating|open|opening) (up )?((a|an|the|your|our|plenty of|more|extra|enough|sufficient|ample|adequate|at least|a big|a bigger|a larger|a good|a safe|a sensible|a lot more|a wide|a generous|lots of|some|the current|this|that) )*((safe|following|sensible|larger|bigger|wider|extra|generous|good|big|healthy|long|longer|two second|three second|four second|2 second|3 second|2 s|3 s) )*(distance|gap|space|room|cushion|margin|buffer|berth|headway)\b"),
-            a(r"\b(keep|keeping|maintain|maintaining|leave|leaving|hold|holding|allow|allowing|give|giving|preserve|ensure|create|creating|open|opening) ([a-z0-9]+ ){1,3}?(distance|gap|space|room|cushion|margin|buffer|berth|headway)\b"),
+            a(r"\b(keep|keeping|maintain|maintaining|leave|leaving|hold|holding|allow|allowing|give|giving|preserve|ensure|create|creating|open|opening) ([a-z0-9]+ ){1,3}?(distance|gap|space|room|cushion|margin|buffer|berth|headway|car length|car lengths|lengths)\b"),
             a(r"\b(increase|increasing|lengthen|lengthening|double|doubling|widen|widening|extend|extending|grow|enlarge|open up|opening up) (the |your |our |a |that )?(following |safety )?(distance|gap|space|headway)\b"),
             a(r"\b(following distance|gap|distance|headway) (should|must|needs to) be (at least )?(doubled|increased|longer|larger|bigger|kept|maintained)\b"),
             a(r"\b(following distance|following gap|gap|distance|keep distance|headway) : (increase|double|keep|maintain|large|larger|true|yes|extra)\b"),
@@ -852,6 +856,7 @@ fn build() -> Vec<LabelRules> {
             a(r"\bproceed(ing)?\b"),
             a(r"\bdrive on\b"),
             a(r"\bgo straight( on| ahead| through| over| across)?\b"),
+            a(r"\bkeep (going )?straight( on| ahead)?\b"),
             a(r"\b(maintain|maintaining|hold|holding|keep|keeping) (your |the |our |a |this )?(current |present |steady |same |constant )?(speed|course|pace|lane|heading|speed and lane|lane and speed)\b"),
             a(r"\bhold lane\b"),
             a(r"\b(stay|staying|remain) (in|on) (your |the |this |our )?(current |present )?(lane|course)\b"),
@@ -1109,7 +1114,7 @@ const WEATHER: &[&str] = &[
     "freezing", "sleet", "hail", "wind", "windy", "winds", "crosswind", "crosswinds", "gust",
     "gusts", "gusty", "storm", "downpour", "shower", "showers", "drizzle", "drizzling",
     "pouring", "puddles", "flooded", "flooding", "slippery", "black ice", "weather",
-    "conditions", "visibility", "hazy", "haze", "gale", "blizzard", "greasy", "river",
+    "conditions", "hazy", "haze", "gale", "blizzard", "greasy", "river",
 ];
 const WEATHER_NEG: &[&str] = &[
     "not a factor", "not the issue", "plays no part", "no part", "does not require",
@@ -1124,7 +1129,7 @@ const HAZARDS: &[&str] = &[
     "light", "lights", "signal", "pedestrian", "pedestrians", "cyclist", "cyclists", "queue",
     "traffic", "car", "vehicle", "bus", "truck", "lorry", "van", "bend", "corner", "school",
     "bump", "child", "children", "animal", "deer", "works", "roadworks", "cones", "tractor",
-    "speed limit", "limit", "hazard", "people", "man", "woman", "dog", "horse", "darkness",
+    "hazard", "people", "man", "woman", "dog", "horse", "darkness",
     "dark", "night", "sign", "stop", "turn", "exit", "motorcycle", "ambulance", "kids",
     "pothole", "obstacle", "congestion", "jam",
 ];
