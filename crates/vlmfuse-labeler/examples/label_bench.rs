@@ -32,8 +32,11 @@ fn main() {
         .filter(|e| e.split == "train")
         .map(|e| e.text.as_str())
         .collect();
-    let lab = EmbeddingLabeler::load(Ontology::default_driving(), EmbeddingConfig::new(&a.minilm_dir))
-        .unwrap();
+    let lab = EmbeddingLabeler::load(
+        Ontology::default_driving(),
+        EmbeddingConfig::new(&a.minilm_dir),
+    )
+    .unwrap();
     let enc = CandleEncoder::load(&a.minilm_dir).unwrap();
     let mut seed = 0x9E37_79B9_7F4A_7C15u64;
     let mut next = || {
@@ -54,7 +57,10 @@ fn main() {
     let mut words = 0usize;
     let (mut n_items, mut unexplained) = (0usize, 0usize);
     for s in &sets {
-        words += s.iter().map(|t| t.split_whitespace().count()).sum::<usize>();
+        words += s
+            .iter()
+            .map(|t| t.split_whitespace().count())
+            .sum::<usize>();
         let t0 = Instant::now();
         lab.label_batch_blocking(s).unwrap();
         batched.push(t0.elapsed().as_secs_f64() * 1e3);

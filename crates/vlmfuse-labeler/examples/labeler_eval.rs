@@ -90,7 +90,9 @@ async fn fake_server(lab: Arc<EmbeddingLabeler>) -> String {
             .map(|o| o.labels)
             .unwrap_or_default();
         let content = json!({ "labels": labels }).to_string();
-        Json(json!({"choices": [{"index": 0, "message": {"role": "assistant", "content": content}}]}))
+        Json(
+            json!({"choices": [{"index": 0, "message": {"role": "assistant", "content": content}}]}),
+        )
     }
     let app = Router::new()
         .route("/v1/chat/completions", post(chat))
@@ -106,9 +108,17 @@ fn main() -> Result<(), LabelerError> {
     let tune = args.iter().any(|a| a == "--tune");
     let only: Vec<String> = arg_value(&args, "--only")
         .map(|s| s.split(',').map(str::to_string).collect())
-        .unwrap_or_else(|| vec!["embedding".into(), "rules".into(), "remote".into(), "gguf".into()]);
+        .unwrap_or_else(|| {
+            vec![
+                "embedding".into(),
+                "rules".into(),
+                "remote".into(),
+                "gguf".into(),
+            ]
+        });
     let want = |n: &str| only.iter().any(|o| o == n);
-    let gguf_test: usize = arg_value(&args, "--gguf-test").map_or(usize::MAX, |v| v.parse().unwrap());
+    let gguf_test: usize =
+        arg_value(&args, "--gguf-test").map_or(usize::MAX, |v| v.parse().unwrap());
 
     let assets = match ensure_assets() {
         Ok(a) => a,
@@ -120,7 +130,8 @@ fn main() -> Result<(), LabelerError> {
     };
     let ontology = Ontology::default_driving();
     let data = load_dataset(&default_dataset_path())?;
-    let (train, test): (Vec<&Example>, Vec<&Example>) = data.iter().partition(|e| e.split == "train");
+    let (train, test): (Vec<&Example>, Vec<&Example>) =
+        data.iter().partition(|e| e.split == "train");
     let truth = |xs: &[&Example]| -> Result<Vec<Vec<bool>>, LabelerError> {
         xs.iter().map(|e| to_mask(&ontology, &e.labels)).collect()
     };
@@ -158,7 +169,7 @@ fn main() -> Result<(), LabelerError> {
                 th[k] = t;
                 let p: Vec<bool> = reads
                     .iter()
-                    .map(|r| emb.decide_with(r, &th).labels.iter().any(|x| *x == l.id))
+                    .map(|r| emb.decide_with(r, &th).labels.contains(&l.id))
                     .collect();
                 let b = vec![false; p.len()];
                 let s: Vec<f32> = p.iter().map(|&x| if x { 1.0 } else { 0.0 }).collect();
@@ -177,7 +188,7 @@ fn main() -> Result<(), LabelerError> {
             // How many labels a paraphrase match adds over the rules, and how many are right.
             let base: Vec<bool> = reads
                 .iter()
-                .map(|r| emb.decide_with(r, &none).labels.iter().any(|x| *x == l.id))
+                .map(|r| emb.decide_with(r, &none).labels.contains(&l.id))
                 .collect();
             let adds: Vec<String> = [0.95f32, 0.9, 0.85, 0.8, 0.75, 0.7, 0.65]
                 .iter()
@@ -186,7 +197,7 @@ fn main() -> Result<(), LabelerError> {
                     th[k] = t;
                     let (mut n, mut ok) = (0, 0);
                     for ((r, &b), &yy) in reads.iter().zip(&base).zip(&y) {
-                        let on = emb.decide_with(r, &th).labels.iter().any(|x| *x == l.id);
+                        let on = emb.decide_with(r, &th).labels.contains(&l.id);
                         if on && !b {
                             n += 1;
                             ok += usize::from(yy);
@@ -212,7 +223,11 @@ fn main() -> Result<(), LabelerError> {
         let t0 = Instant::now();
         let mut labels = Vec::new();
         for chunk in test_texts.chunks(3) {
-            labels.extend(emb.label_batch_blocking(chunk)?.into_iter().map(|o| o.labels));
+            labels.extend(
+                emb.label_batch_blocking(chunk)?
+                    .into_iter()
+                    .map(|o| o.labels),
+            );
         }
         let ms = t0.elapsed().as_secs_f64() * 1e3 / test.len() as f64;
         let pred = masks(&ontology, &labels)?;
@@ -227,10 +242,7 @@ fn main() -> Result<(), LabelerError> {
 
     if want("rules") {
         let mut cfg = EmbeddingConfig::new(&assets.minilm_dir);
-        cfg.label_thresholds = ontology
-            .ids()
-            .map(|id| (id.to_string(), 2.0f32))
-            .collect();
+        cfg.label_thresholds = ontology.ids().map(|id| (id.to_string(), 2.0f32)).collect();
         let r = EmbeddingLabeler::load(ontology.clone(), cfg)?;
         let t0 = Instant::now();
         let mut labels = Vec::new();
@@ -304,8 +316,15 @@ fn main() -> Result<(), LabelerError> {
     println!("\n| labeler | micro-F1 | macro-F1 | ms/answer | test answers |");
     println!("|---|---|---|---|---|");
     for r in &table {
-        let ms = if r.ms.is_nan() { "-".to_string() } else { format!("{:.1}", r.ms) };
-        println!("| {} | {:.3} | {:.3} | {ms} | {} |", r.name, r.f.micro, r.f.macro_, r.n);
+        let ms = if r.ms.is_nan() {
+            "-".to_string()
+        } else {
+            format!("{:.1}", r.ms)
+        };
+        println!(
+            "| {} | {:.3} | {:.3} | {ms} | {} |",
+            r.name, r.f.micro, r.f.macro_, r.n
+        );
     }
     println!("\nper-label F1 (test split):\n");
     let mut head = "| label | positives |".to_string();

@@ -10,7 +10,11 @@ fn main() {
         for para in t.split("\n\n").filter(|p| !p.trim().is_empty()) {
             let s = text::sentences(para);
             let m = rules::mentions(&s);
-            let on: Vec<&str> = rules::decide(&s, &m).into_iter().filter(|d| d.1).map(|d| d.0).collect();
+            let on: Vec<&str> = rules::decide(&s, &m)
+                .into_iter()
+                .filter(|d| d.1)
+                .map(|d| d.0)
+                .collect();
             println!("{:?}\n   => {on:?}", para.trim());
         }
         return;
@@ -25,9 +29,23 @@ fn main() {
         let span: Vec<&str> = (x.a..x.b).map(|k| sn.w(k)).collect();
         println!(
             "  {:<26} {:?} [{}] {:?} neg={} out={} hedge={} other={} past={} asserted={} pos={}",
-            x.label, x.kind, x.sentence, span.join(" "), x.negated, x.rules_out, x.hedged, x.other, x.past, x.asserted, x.positive()
+            x.label,
+            x.kind,
+            x.sentence,
+            span.join(" "),
+            x.negated,
+            x.rules_out,
+            x.hedged,
+            x.other,
+            x.past,
+            x.asserted,
+            x.positive()
         );
     }
-    let on: Vec<&str> = rules::decide(&s, &m).into_iter().filter(|d| d.1).map(|d| d.0).collect();
+    let on: Vec<&str> = rules::decide(&s, &m)
+        .into_iter()
+        .filter(|d| d.1)
+        .map(|d| d.0)
+        .collect();
     println!("=> {on:?}");
 }

@@ -42,8 +42,14 @@ fn main() {
             };
             let missed = name(&t, &p);
             let extra = name(&p, &t);
-            if only.as_ref().is_none_or(|l| missed.contains(&l.as_str()) || extra.contains(&l.as_str())) {
-                println!("--- {}: missed {missed:?} extra {extra:?}\n{}", e.id, e.text);
+            if only
+                .as_ref()
+                .is_none_or(|l| missed.contains(&l.as_str()) || extra.contains(&l.as_str()))
+            {
+                println!(
+                    "--- {}: missed {missed:?} extra {extra:?}\n{}",
+                    e.id, e.text
+                );
                 for x in &m {
                     let sn = &s[x.sentence];
                     let span: Vec<&str> = (x.a..x.b).map(|k| sn.w(k)).collect();
@@ -60,19 +66,38 @@ fn main() {
         pred.push(p);
     }
     for prefix in ["a-", "h-"] {
-        let idx: Vec<usize> = (0..train.len()).filter(|&i| train[i].id.starts_with(prefix)).collect();
+        let idx: Vec<usize> = (0..train.len())
+            .filter(|&i| train[i].id.starts_with(prefix))
+            .collect();
         let t: Vec<Vec<bool>> = idx.iter().map(|&i| truth[i].clone()).collect();
         let p: Vec<Vec<bool>> = idx.iter().map(|&i| pred[i].clone()).collect();
         let f = f1_scores(&t, &p);
-        println!("train {prefix}* ({}): micro {:.3} macro {:.3}", idx.len(), f.micro, f.macro_);
+        println!(
+            "train {prefix}* ({}): micro {:.3} macro {:.3}",
+            idx.len(),
+            f.micro,
+            f.macro_
+        );
     }
     let f = f1_scores(&truth, &pred);
-    println!("train ({}): micro {:.3} macro {:.3}", train.len(), f.micro, f.macro_);
+    println!(
+        "train ({}): micro {:.3} macro {:.3}",
+        train.len(),
+        f.micro,
+        f.macro_
+    );
     for (k, l) in onto.labels().iter().enumerate() {
         let col = |m: &[Vec<bool>]| m.iter().map(|r| vec![r[k]]).collect::<Vec<_>>();
-        let (tp, fp, fnn) = truth.iter().zip(&pred).fold((0, 0, 0), |(a, b, c), (t, p)| {
-            (a + (t[k] && p[k]) as usize, b + (!t[k] && p[k]) as usize, c + (t[k] && !p[k]) as usize)
-        });
+        let (tp, fp, fnn) = truth
+            .iter()
+            .zip(&pred)
+            .fold((0, 0, 0), |(a, b, c), (t, p)| {
+                (
+                    a + (t[k] && p[k]) as usize,
+                    b + (!t[k] && p[k]) as usize,
+                    c + (t[k] && !p[k]) as usize,
+                )
+            });
         println!(
             "  {:<28} F1 {:.3}  tp {tp:>3} fp {fp:>3} fn {fnn:>3}",
             l.id,

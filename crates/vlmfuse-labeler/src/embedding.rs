@@ -438,7 +438,11 @@ impl Inner {
         // (reading, sentence, item range, polarity) of every item to embed.
         let mut queue: Vec<(usize, usize, (usize, usize), bool)> = Vec::new();
         let mut item_texts: Vec<String> = Vec::new();
-        let any_free = self.eligible.iter().zip(&self.ruled).any(|(&e, &r)| e && !r);
+        let any_free = self
+            .eligible
+            .iter()
+            .zip(&self.ruled)
+            .any(|(&e, &r)| e && !r);
         for (ti, t) in texts.iter().enumerate() {
             let sentences = text::sentences_with(t, &self.speller);
             let mentions = if self.ruled.iter().any(|&r| r) {
@@ -456,10 +460,7 @@ impl Inner {
                     if !r {
                         return None;
                     }
-                    decided
-                        .iter()
-                        .find(|d| d.0 == l.id)
-                        .map(|d| (d.1, d.2))
+                    decided.iter().find(|d| d.0 == l.id).map(|d| (d.1, d.2))
                 })
                 .collect();
             for (si, s) in sentences.iter().enumerate() {
@@ -512,11 +513,11 @@ impl Inner {
                 }
             }
             let r = &mut readings[*ti];
-            for k in 0..n {
-                if best[k].is_finite() && r.best[k].as_ref().is_none_or(|m| best[k] > m.score) {
-                    r.best[k] = Some(ItemMatch {
+            for (slot, &score) in r.best.iter_mut().zip(&best) {
+                if score.is_finite() && slot.as_ref().is_none_or(|m| score > m.score) {
+                    *slot = Some(ItemMatch {
                         item: item.clone(),
-                        score: best[k],
+                        score,
                         background: bg,
                     });
                 }
@@ -589,7 +590,10 @@ impl Inner {
 
     fn label_batch(&self, texts: &[&str]) -> Result<Vec<LabelerOutput>, LabelerError> {
         let rs = self.read_batch(texts)?;
-        Ok(rs.iter().map(|r| self.decide(r, &self.thresholds)).collect())
+        Ok(rs
+            .iter()
+            .map(|r| self.decide(r, &self.thresholds))
+            .collect())
     }
 }
 

@@ -91,74 +91,279 @@ fn re(s: &str) -> Regex {
 
 /// Words that name other road users (G4).
 const OTHERS: &[&str] = &[
-    "car", "cars", "vehicle", "vehicles", "truck", "trucks", "lorry", "lorries", "van", "vans",
-    "bus", "buses", "coach", "cyclist", "cyclists", "bike", "bikes", "motorbike", "motorcycle",
-    "motorcyclist", "pedestrian", "pedestrians", "people", "person", "traffic", "others",
-    "they", "them", "he", "she", "someone", "somebody", "taxi", "suv", "pickup",
-    "ambulance", "tram", "tractor", "jogger", "man", "woman", "child", "children", "kids",
-    "kid", "driver", "drivers", "lanes", "lane", "roads", "road", "leader", "hatchback",
-    "sedan", "lead", "queue", "camera",
+    "car",
+    "cars",
+    "vehicle",
+    "vehicles",
+    "truck",
+    "trucks",
+    "lorry",
+    "lorries",
+    "van",
+    "vans",
+    "bus",
+    "buses",
+    "coach",
+    "cyclist",
+    "cyclists",
+    "bike",
+    "bikes",
+    "motorbike",
+    "motorcycle",
+    "motorcyclist",
+    "pedestrian",
+    "pedestrians",
+    "people",
+    "person",
+    "traffic",
+    "others",
+    "they",
+    "them",
+    "he",
+    "she",
+    "someone",
+    "somebody",
+    "taxi",
+    "suv",
+    "pickup",
+    "ambulance",
+    "tram",
+    "tractor",
+    "jogger",
+    "man",
+    "woman",
+    "child",
+    "children",
+    "kids",
+    "kid",
+    "driver",
+    "drivers",
+    "lanes",
+    "lane",
+    "roads",
+    "road",
+    "leader",
+    "hatchback",
+    "sedan",
+    "lead",
+    "queue",
+    "camera",
 ];
 /// Advice words that make the phrase a recommendation to the ego vehicle wherever they stand.
 const STRONG_ADVICE: &[&str] = &[
-    "should", "must", "need", "needs", "recommend", "recommended", "suggest", "best",
-    "advisable", "wise", "please", "try", "ought", "advise", "better",
+    "should",
+    "must",
+    "need",
+    "needs",
+    "recommend",
+    "recommended",
+    "suggest",
+    "best",
+    "advisable",
+    "wise",
+    "please",
+    "try",
+    "ought",
+    "advise",
+    "better",
 ];
-const EGO: &[&str] = &["you", "we", "i", "us", "ego", "our", "me", "my", "yourself", "let"];
+const EGO: &[&str] = &[
+    "you", "we", "i", "us", "ego", "our", "me", "my", "yourself", "let",
+];
 /// After these words a verb is advice to the ego vehicle whatever came before (G1).
 const ADVICE: &[&str] = &[
-    "should", "must", "need", "needs", "to", "recommend", "recommended", "suggest", "best",
-    "please", "advisable", "wise", "would", "will", "shall", "can", "try",
+    "should",
+    "must",
+    "need",
+    "needs",
+    "to",
+    "recommend",
+    "recommended",
+    "suggest",
+    "best",
+    "please",
+    "advisable",
+    "wise",
+    "would",
+    "will",
+    "shall",
+    "can",
+    "try",
 ];
 const AUX: &[&str] = &[
-    "is", "are", "was", "were", "has", "have", "had", "keeps", "starts", "begins", "may",
-    "might", "could", "seems", "appears", "just", "already", "also", "currently", "now",
-    "still", "suddenly", "slowly",
+    "is",
+    "are",
+    "was",
+    "were",
+    "has",
+    "have",
+    "had",
+    "keeps",
+    "starts",
+    "begins",
+    "may",
+    "might",
+    "could",
+    "seems",
+    "appears",
+    "just",
+    "already",
+    "also",
+    "currently",
+    "now",
+    "still",
+    "suddenly",
+    "slowly",
 ];
 
 /// Negation cues (G3); two-word cues are checked first.
 const NEG_CUES: &[&str] = &[
-    "no", "not", "never", "without", "avoid", "avoiding", "nothing", "none", "neither", "nor",
-    "refrain", "prohibited", "zero",
+    "no",
+    "not",
+    "never",
+    "without",
+    "avoid",
+    "avoiding",
+    "nothing",
+    "none",
+    "neither",
+    "nor",
+    "refrain",
+    "prohibited",
+    "zero",
 ];
 const NEG_CUES2: &[&str] = &["instead of", "rather than", "no need", "no reason"];
 /// Phrases where a cue does not negate what follows.
 const DOUBLE_NEG: &[&str] = &[
-    "not forget", "never forget", "not only", "no matter", "without fail", "not hesitate",
-    "never skip", "not skip", "not neglect", "not miss", "no doubt", "not be afraid",
+    "not forget",
+    "never forget",
+    "not only",
+    "no matter",
+    "without fail",
+    "not hesitate",
+    "never skip",
+    "not skip",
+    "not neglect",
+    "not miss",
+    "no doubt",
+    "not be afraid",
     "nothing wrong",
 ];
 /// After a mention, in its phrase: it is not needed.
 const POST_NEG: &[&str] = &[
-    "is not needed", "is not required", "is not necessary", "is not advised",
-    "is not recommended", "is not an option", "is not possible", "not needed", "not required",
-    "not necessary", "is unnecessary", "unnecessary", "is probably not needed",
-    "are not needed", "is not allowed", "not allowed", "prohibited", "is prohibited",
-    "forbidden", "is forbidden", "banned", "is banned", "is illegal", "is not called for",
-    "isn not needed", "neither", "no",
+    "is not needed",
+    "is not required",
+    "is not necessary",
+    "is not advised",
+    "is not recommended",
+    "is not an option",
+    "is not possible",
+    "not needed",
+    "not required",
+    "not necessary",
+    "is unnecessary",
+    "unnecessary",
+    "is probably not needed",
+    "are not needed",
+    "is not allowed",
+    "not allowed",
+    "prohibited",
+    "is prohibited",
+    "forbidden",
+    "is forbidden",
+    "banned",
+    "is banned",
+    "is illegal",
+    "is not called for",
+    "isn not needed",
+    "neither",
+    "no",
 ];
 /// Values of a `key: value` line that negate or hedge the key.
 const VALUE_NEG: &[&str] = &[
-    "no", "none", "false", "not required", "not needed", "not necessary", "n a", "nil",
-    "negative", "not present", "absent", "not applicable", "0", "off", "nothing",
+    "no",
+    "none",
+    "false",
+    "not required",
+    "not needed",
+    "not necessary",
+    "n a",
+    "nil",
+    "negative",
+    "not present",
+    "absent",
+    "not applicable",
+    "0",
+    "off",
+    "nothing",
 ];
 const VALUE_HEDGE: &[&str] = &[
-    "maybe", "possibly", "perhaps", "only if needed", "if needed", "if necessary",
-    "if required", "optional", "as needed", "probably", "unsure", "unclear", "depends",
-    "conditional", "only if necessary", "might",
+    "maybe",
+    "possibly",
+    "perhaps",
+    "only if needed",
+    "if needed",
+    "if necessary",
+    "if required",
+    "optional",
+    "as needed",
+    "probably",
+    "unsure",
+    "unclear",
+    "depends",
+    "conditional",
+    "only if necessary",
+    "might",
 ];
 const KEY_HEDGE: &[&str] = &[
-    "maybe", "if needed", "if necessary", "possible", "possibly", "optional", "conditional",
-    "contingency", "backup", "fallback", "if required", "might", "may", "consider later",
-    "watch", "watch for", "risk", "risks", "potential",
+    "maybe",
+    "if needed",
+    "if necessary",
+    "possible",
+    "possibly",
+    "optional",
+    "conditional",
+    "contingency",
+    "backup",
+    "fallback",
+    "if required",
+    "might",
+    "may",
+    "consider later",
+    "watch",
+    "watch for",
+    "risk",
+    "risks",
+    "potential",
 ];
-const KEY_NEG: &[&str] = &["avoid", "do not", "dont", "not", "never", "prohibited", "forbidden"];
+const KEY_NEG: &[&str] = &[
+    "avoid",
+    "do not",
+    "dont",
+    "not",
+    "never",
+    "prohibited",
+    "forbidden",
+];
 
 /// Hedge cues whose scope runs to the end of the sentence (G2).
 const HEDGE_LEAD: &[&str] = &[
-    "be prepared", "be ready", "prepare to", "prepare for", "get ready", "stand by",
-    "stay ready", "ready to", "cover the", "considered", "thought about", "thinking about",
-    "be alert", "be aware", "be on the lookout", "prepared to",
+    "be prepared",
+    "be ready",
+    "prepare to",
+    "prepare for",
+    "get ready",
+    "stand by",
+    "stay ready",
+    "ready to",
+    "cover the",
+    "considered",
+    "thought about",
+    "thinking about",
+    "be alert",
+    "be aware",
+    "be on the lookout",
+    "prepared to",
 ];
 /// Modals that hedge: `may`, `might`, `could`, `would` when not "I would / it would be wise".
 const MODALS: &[&str] = &["may", "might", "could"];
@@ -166,8 +371,17 @@ const MODALS: &[&str] = &["may", "might", "could"];
 const ADVERBS: &[&str] = &["possibly", "maybe", "perhaps", "probably", "potentially"];
 /// Watching (G2): hedges its own phrase.
 const WATCH: &[&str] = &[
-    "watch for", "watch out for", "look out for", "keep an eye out", "be alert for",
-    "be alert to", "watch that", "watch whether", "see if", "see whether", "check whether",
+    "watch for",
+    "watch out for",
+    "look out for",
+    "keep an eye out",
+    "be alert for",
+    "be alert to",
+    "watch that",
+    "watch whether",
+    "see if",
+    "see whether",
+    "check whether",
     "check if",
 ];
 
@@ -177,7 +391,10 @@ fn is_break(w: &str) -> bool {
 
 /// Start of the phrase containing word `i` (after the last break before it).
 fn phrase_start(s: &Sentence, i: usize) -> usize {
-    (0..i).rev().find(|&k| is_break(s.w(k))).map_or(0, |k| k + 1)
+    (0..i)
+        .rev()
+        .find(|&k| is_break(s.w(k)))
+        .map_or(0, |k| k + 1)
 }
 
 /// End (exclusive) of the phrase containing word `i`.
@@ -200,7 +417,9 @@ fn any_seq_at(s: &Sentence, i: usize, seqs: &[&str]) -> bool {
 fn rest_is(s: &Sentence, from: usize, to: usize, values: &[&str]) -> bool {
     let v: Vec<&str> = (from..to).map(|k| s.w(k)).filter(|w| *w != ",").collect();
     let v = v.join(" ");
-    values.iter().any(|x| v == *x || v.starts_with(&format!("{x} ")))
+    values
+        .iter()
+        .any(|x| v == *x || v.starts_with(&format!("{x} ")))
 }
 
 /// G3 for actions: a cue earlier in the mention's phrase, "X is not needed" after it, or a
@@ -227,8 +446,10 @@ fn negation_cue(s: &Sentence, a: usize, b: usize) -> Option<String> {
     let end = (b..s.words.len())
         .find(|&k| {
             PUNCT_BREAK.contains(&s.w(k))
-                || ["but", "so", "because", "and", "if", "as", "since", "when", "once", "then"]
-                    .contains(&s.w(k))
+                || [
+                    "but", "so", "because", "and", "if", "as", "since", "when", "once", "then",
+                ]
+                .contains(&s.w(k))
         })
         .unwrap_or(s.words.len());
     for k in b..end {
@@ -254,17 +475,58 @@ fn negation_cue(s: &Sentence, a: usize, b: usize) -> Option<String> {
 /// braking") or of a weather motive ("no need to slow down for the rain") do not rule the
 /// action out.
 fn rules_out(s: &Sentence, a: usize, b: usize, cue: &str) -> bool {
-    let strong = ["no", "not", "never", "nothing", "none", "neither", "nor", "no need", "no reason", "not needed"]
-        .contains(&cue);
+    let strong = [
+        "no",
+        "not",
+        "never",
+        "nothing",
+        "none",
+        "neither",
+        "nor",
+        "no need",
+        "no reason",
+        "not needed",
+    ]
+    .contains(&cue);
     let manner = a > 0
         && [
-            "harsh", "harshly", "sudden", "suddenly", "hard", "heavy", "heavily", "abrupt",
-            "abruptly", "sharp", "sharply", "excessive", "aggressive", "aggressively", "late",
-            "unnecessary", "unnecessarily", "too",
+            "harsh",
+            "harshly",
+            "sudden",
+            "suddenly",
+            "hard",
+            "heavy",
+            "heavily",
+            "abrupt",
+            "abruptly",
+            "sharp",
+            "sharply",
+            "excessive",
+            "aggressive",
+            "aggressively",
+            "late",
+            "unnecessary",
+            "unnecessarily",
+            "too",
         ]
         .contains(&s.w(a - 1));
     let weather_motive = (b..(b + 4).min(s.words.len())).any(|k| {
-        any_seq_at(s, k, &["for the weather", "for it", "for the rain", "for the conditions", "because of the weather", "due to the weather", "for the snow", "for the fog", "for the ice", "for the wet"])
+        any_seq_at(
+            s,
+            k,
+            &[
+                "for the weather",
+                "for it",
+                "for the rain",
+                "for the conditions",
+                "because of the weather",
+                "due to the weather",
+                "for the snow",
+                "for the fog",
+                "for the ice",
+                "for the wet",
+            ],
+        )
     });
     strong && !manner && !weather_motive
 }
@@ -272,17 +534,102 @@ fn rules_out(s: &Sentence, a: usize, b: usize, cue: &str) -> bool {
 /// Fillers allowed between a negation cue and the scene noun it denies ("no visible traffic
 /// lights", "I can not see any junction").
 const NP_FILLER: &[&str] = &[
-    "a", "an", "the", "any", "other", "visible", "obvious", "nearby", "such", "more",
-    "further", "real", "actual", "sign", "signs", "of", "evidence", "see", "seen", "spot",
-    "notice", "make", "out", "is", "are", "there", "working", "marked", "major", "minor",
-    "upcoming", "immediate", "apparent", "can", "i", "we", "do", "does", "appear", "appears",
-    "seem", "seems", "to", "be", "or", "nor", ",", "junctions", "junction", "traffic",
-    "lights", "light", "signals", "signal", "crossings", "crossing", "crossroads",
-    "intersections", "intersection", "side", "roads", "road", "streets", "pedestrian",
-    "zebra", "formal", "designated", "controlled", "roundabouts", "roundabout", "zebras",
-    "crosswalks", "crosswalk", "set", "sets", "obstacles", "hazards", "cars", "vehicles",
-    "at", "anywhere", "in", "sight", "near", "here", "this", "that", "on", "pedestrians",
-    "people", "cyclists", "walkers", "one", "bikes", "kids", "children",
+    "a",
+    "an",
+    "the",
+    "any",
+    "other",
+    "visible",
+    "obvious",
+    "nearby",
+    "such",
+    "more",
+    "further",
+    "real",
+    "actual",
+    "sign",
+    "signs",
+    "of",
+    "evidence",
+    "see",
+    "seen",
+    "spot",
+    "notice",
+    "make",
+    "out",
+    "is",
+    "are",
+    "there",
+    "working",
+    "marked",
+    "major",
+    "minor",
+    "upcoming",
+    "immediate",
+    "apparent",
+    "can",
+    "i",
+    "we",
+    "do",
+    "does",
+    "appear",
+    "appears",
+    "seem",
+    "seems",
+    "to",
+    "be",
+    "or",
+    "nor",
+    ",",
+    "junctions",
+    "junction",
+    "traffic",
+    "lights",
+    "light",
+    "signals",
+    "signal",
+    "crossings",
+    "crossing",
+    "crossroads",
+    "intersections",
+    "intersection",
+    "side",
+    "roads",
+    "road",
+    "streets",
+    "pedestrian",
+    "zebra",
+    "formal",
+    "designated",
+    "controlled",
+    "roundabouts",
+    "roundabout",
+    "zebras",
+    "crosswalks",
+    "crosswalk",
+    "set",
+    "sets",
+    "obstacles",
+    "hazards",
+    "cars",
+    "vehicles",
+    "at",
+    "anywhere",
+    "in",
+    "sight",
+    "near",
+    "here",
+    "this",
+    "that",
+    "on",
+    "pedestrians",
+    "people",
+    "cyclists",
+    "walkers",
+    "one",
+    "bikes",
+    "kids",
+    "children",
 ];
 
 /// G3 for scene elements: "no Y", "Y: none", "without Y", and uncertainty about Y (G12).
@@ -296,8 +643,10 @@ fn negated_scene(s: &Sentence, a: usize, b: usize) -> bool {
         if any_seq_at(s, k, DOUBLE_NEG) {
             break;
         }
-        if ["no", "not", "without", "none", "neither", "nor", "zero", "lack", "absence"]
-            .contains(&w)
+        if [
+            "no", "not", "without", "none", "neither", "nor", "zero", "lack", "absence",
+        ]
+        .contains(&w)
         {
             return true;
         }
@@ -317,8 +666,15 @@ fn negated_scene(s: &Sentence, a: usize, b: usize) -> bool {
             s,
             k,
             &[
-                "is absent", "are absent", "not present", "is not present", "are not present",
-                "none", "is not visible", "are not visible", "not visible",
+                "is absent",
+                "are absent",
+                "not present",
+                "is not present",
+                "are not present",
+                "none",
+                "is not visible",
+                "are not visible",
+                "not visible",
             ],
         ) {
             return true;
@@ -335,7 +691,10 @@ fn negated_scene(s: &Sentence, a: usize, b: usize) -> bool {
 /// G12: the answer doubts that the thing is there ("hard to tell whether it is a light at
 /// all"). Counts as a denial.
 fn doubted(s: &Sentence, a: usize) -> bool {
-    if s.question && !(0..a).any(|k| ["stop", "turn", "slow", "yield", "merge", "brake", "wait"].contains(&s.w(k))) {
+    if s.question
+        && !(0..a)
+            .any(|k| ["stop", "turn", "slow", "yield", "merge", "brake", "wait"].contains(&s.w(k)))
+    {
         return true;
     }
     let from = a.saturating_sub(8);
@@ -343,7 +702,29 @@ fn doubted(s: &Sentence, a: usize) -> bool {
         any_seq_at(
             s,
             k,
-            &["not sure", "unsure", "unclear", "hard to tell", "difficult to tell", "can not tell", "might be a", "may be a", "could be a", "possibly a", "perhaps a", "maybe a", "whether it is", "whether there is", "whether this is", "whether that is", "if it is a", "if there is a", "might be the", "may be the", "could be the"],
+            &[
+                "not sure",
+                "unsure",
+                "unclear",
+                "hard to tell",
+                "difficult to tell",
+                "can not tell",
+                "might be a",
+                "may be a",
+                "could be a",
+                "possibly a",
+                "perhaps a",
+                "maybe a",
+                "whether it is",
+                "whether there is",
+                "whether this is",
+                "whether that is",
+                "if it is a",
+                "if there is a",
+                "might be the",
+                "may be the",
+                "could be the",
+            ],
         )
     })
 }
@@ -351,9 +732,28 @@ fn doubted(s: &Sentence, a: usize) -> bool {
 /// Separators of the items of a list of actions: a per-item hedge ("maybe", "be ready to")
 /// stops here, a lead modal ("may need to") does not.
 const ITEM_BREAK: &[&str] = &[
-    "and", "then", "or", "but", "so", "because", "since", "while", "although", "though",
-    "whereas", "however", "yet", "until", "unless", "once", "when", "after", "before",
-    "therefore", "thus", "which",
+    "and",
+    "then",
+    "or",
+    "but",
+    "so",
+    "because",
+    "since",
+    "while",
+    "although",
+    "though",
+    "whereas",
+    "however",
+    "yet",
+    "until",
+    "unless",
+    "once",
+    "when",
+    "after",
+    "before",
+    "therefore",
+    "thus",
+    "which",
 ];
 
 fn is_item_break(w: &str) -> bool {
@@ -363,7 +763,19 @@ fn is_item_break(w: &str) -> bool {
 /// "slowly enough to stop", "be able to stop": an ability or a purpose, not a commitment.
 fn ability(s: &Sentence, a: usize) -> bool {
     let from = a.saturating_sub(3);
-    (from..a).any(|k| any_seq_at(s, k, &["enough to", "able to", "so you can", "so that you can", "in order to be able"]))
+    (from..a).any(|k| {
+        any_seq_at(
+            s,
+            k,
+            &[
+                "enough to",
+                "able to",
+                "so you can",
+                "so that you can",
+                "in order to be able",
+            ],
+        )
+    })
 }
 
 /// "Changing lanes without looking is unsafe", "braking on snow takes longer": a gerund that is
@@ -374,8 +786,10 @@ fn generic_gerund(s: &Sentence, a: usize, b: usize) -> bool {
     }
     let end = (b + 8).min(s.words.len());
     let Some(k) = (b..end).find(|&k| {
-        ["is", "are", "would", "will", "can", "could", "takes", "take", "makes", "may", "might"]
-            .contains(&s.w(k))
+        [
+            "is", "are", "would", "will", "can", "could", "takes", "take", "makes", "may", "might",
+        ]
+        .contains(&s.w(k))
     }) else {
         return false;
     };
@@ -383,7 +797,25 @@ fn generic_gerund(s: &Sentence, a: usize, b: usize) -> bool {
         any_seq_at(
             s,
             j,
-            &["advisable", "recommended", "necessary", "required", "needed", "wise", "best", "a good idea", "the right", "important", "essential", "the safest", "safest", "sensible", "appropriate", "called for", "not"],
+            &[
+                "advisable",
+                "recommended",
+                "necessary",
+                "required",
+                "needed",
+                "wise",
+                "best",
+                "a good idea",
+                "the right",
+                "important",
+                "essential",
+                "the safest",
+                "safest",
+                "sensible",
+                "appropriate",
+                "called for",
+                "not",
+            ],
         )
     })
 }
@@ -407,17 +839,42 @@ fn hedged(s: &Sentence, a: usize, b: usize) -> bool {
         }
         // Sentence scope: conditions ("If Y, X"; "otherwise X") and lead modals of possibility
         // ("may need to X, Y and Z").
-        if any_seq_at(s, k, &["if", "in case", "otherwise", "depending", "depends", "unless it is safe", "should the", "should it", "should there", "should anyone", "should a"]) {
+        if any_seq_at(
+            s,
+            k,
+            &[
+                "if",
+                "in case",
+                "otherwise",
+                "depending",
+                "depends",
+                "unless it is safe",
+                "should the",
+                "should it",
+                "should there",
+                "should anyone",
+                "should a",
+            ],
+        ) {
             return true;
         }
         if MODALS.contains(&w) {
-            let governs = any_seq_at(s, k + 1, &["need", "have", "want", "wish", "be", "consider", "also", "then", "well", "want"]);
+            let governs = any_seq_at(
+                s,
+                k + 1,
+                &[
+                    "need", "have", "want", "wish", "be", "consider", "also", "then", "well",
+                    "want",
+                ],
+            );
             if governs || !crossed_item {
                 return true;
             }
         }
         // Item scope: readiness, uncertainty adverbs, watching.
-        if !crossed_item && (any_seq_at(s, k, HEDGE_LEAD) || ADVERBS.contains(&w) || any_seq_at(s, k, WATCH)) {
+        if !crossed_item
+            && (any_seq_at(s, k, HEDGE_LEAD) || ADVERBS.contains(&w) || any_seq_at(s, k, WATCH))
+        {
             return true;
         }
         if is_item_break(w) {
@@ -444,7 +901,20 @@ fn hedged(s: &Sentence, a: usize, b: usize) -> bool {
         if any_seq_at(
             s,
             k,
-            &["if", "only if", "in case", "as needed", "where necessary", "when necessary", "as necessary", "as required", "when needed", "where needed", "depending", "depends"],
+            &[
+                "if",
+                "only if",
+                "in case",
+                "as needed",
+                "where necessary",
+                "when necessary",
+                "as necessary",
+                "as required",
+                "when needed",
+                "where needed",
+                "depending",
+                "depends",
+            ],
         ) {
             return true;
         }
@@ -506,8 +976,11 @@ fn other_agent(s: &Sentence, a: usize) -> bool {
         return false;
     }
     let verb = s.w(a);
-    let finite = pre.last().is_some_and(|w| AUX.contains(w) || OTHERS.contains(w) || ["ahead", "behind", "front", "left", "right", "lane", "next"].contains(w))
-        || verb.ends_with('s') && !verb.ends_with("ss")
+    let finite = pre.last().is_some_and(|w| {
+        AUX.contains(w)
+            || OTHERS.contains(w)
+            || ["ahead", "behind", "front", "left", "right", "lane", "next"].contains(w)
+    }) || verb.ends_with('s') && !verb.ends_with("ss")
         || verb.ends_with("ing");
     finite
 }
@@ -520,7 +993,24 @@ fn past(s: &Sentence, a: usize) -> bool {
         any_seq_at(
             s,
             k,
-            &["passed", "went through", "gone through", "come out of", "came out of", "behind us", "already through", "just left", "exited", "a moment ago", "we left", "have left", "earlier", "already turned", "have turned", "just turned"],
+            &[
+                "passed",
+                "went through",
+                "gone through",
+                "come out of",
+                "came out of",
+                "behind us",
+                "already through",
+                "just left",
+                "exited",
+                "a moment ago",
+                "we left",
+                "have left",
+                "earlier",
+                "already turned",
+                "have turned",
+                "just turned",
+            ],
         )
     })
 }
@@ -556,25 +1046,41 @@ fn build() -> Vec<LabelRules> {
     };
     let turn = |d: &str| -> Vec<Rule> {
         vec![
-            a(&format!(r"\bturn(s|ing)? (hard |sharp |off |back |then )?((to|towards) the )?{d}\b")),
+            a(&format!(
+                r"\bturn(s|ing)? (hard |sharp |off |back |then )?((to|towards) the )?{d}\b"
+            )),
             a(&format!(r"\b{d} (hand )?turn(s)?\b")),
-            a(&format!(r"\b(make|take|hang|hook|swing|do|pull|throw|chuck|making|taking) (a|the) {d}\b")),
-            a(&format!(r"\btake (the )?(first|second|third|1st|2nd|3rd|next) {d}\b")),
+            a(&format!(
+                r"\b(make|take|hang|hook|swing|do|pull|throw|chuck|making|taking) (a|the) {d}\b"
+            )),
+            a(&format!(
+                r"\btake (the )?(first|second|third|1st|2nd|3rd|next) {d}\b"
+            )),
             a(&format!(r"\btake it ((to|towards) the )?{d}\b")),
-            a(&format!(r"\b(go|bear|veer|head|swing|steer|fork|cut|going|bearing|heading) (off )?((to|towards) the )?{d} (at|onto|into|on to|down|up|towards|toward|here|there|after|for)\b")),
+            a(&format!(
+                r"\b(go|bear|veer|head|swing|steer|fork|cut|going|bearing|heading) (off )?((to|towards) the )?{d} (at|onto|into|on to|down|up|towards|toward|here|there|after|for)\b"
+            )),
             a(&format!(r"\b(bear|veer|fork) {d}\b")),
-            a(&format!(r"(^|[,:] |then |and |now |next |so )(hard )?{d} (at|onto|into|on to) (the|a|this|that)\b")),
+            a(&format!(
+                r"(^|[,:] |then |and |now |next |so )(hard )?{d} (at|onto|into|on to) (the|a|this|that)\b"
+            )),
             a(&format!(r"\bturn : {d}\b")),
             a(&format!(r"\b(indicate|signal)(ling|ing)? {d} and turn\b")),
-            a(&format!(r"\bturn(s|ing)? (in|off )?(into|onto) (the |a )?[a-z]+( [a-z]+)? on the {d}\b")),
+            a(&format!(
+                r"\bturn(s|ing)? (in|off )?(into|onto) (the |a )?[a-z]+( [a-z]+)? on the {d}\b"
+            )),
         ]
     };
     let turn_veto = |d: &str| -> Vec<Regex> {
         vec![
-            re(&format!(r"\b{d} (hand )?turn(ing)? (lane|lanes|signal|arrow|only|pocket|bay|traffic|vehicles|cars)\b")),
+            re(&format!(
+                r"\b{d} (hand )?turn(ing)? (lane|lanes|signal|arrow|only|pocket|bay|traffic|vehicles|cars)\b"
+            )),
             re(&format!(r"\b{d} turning\b")),
             re(&format!(r"\bno {d} turn\b")),
-            re(&format!(r"\b(indicates|indicate|requires|require|shows|show|for|signals|means|suggests|allows|prohibited|banned|needs|need|planning|planned|plan|route has|route is) (a |the |another )?{d} turn\b")),
+            re(&format!(
+                r"\b(indicates|indicate|requires|require|shows|show|for|signals|means|suggests|allows|prohibited|banned|needs|need|planning|planned|plan|route has|route is) (a |the |another )?{d} turn\b"
+            )),
         ]
     };
     let mut v = Vec::new();
@@ -911,27 +1417,114 @@ pub fn item_polarity(s: &Sentence, a: usize, b: usize) -> (bool, bool, bool) {
 
 /// Words that cannot open an imperative: determiners, pronouns, prepositions, copulas.
 const NOT_IMPERATIVE: &[&str] = &[
-    "the", "a", "an", "this", "that", "these", "those", "there", "it", "its", "we", "our",
-    "they", "their", "he", "she", "his", "her", "i", "my", "you", "your", "no", "not",
-    "is", "are", "was", "were", "be", "been", "in", "on", "at", "of", "for", "from", "with",
-    "by", "to", "as", "because", "since", "given", "due", "all", "some", "any", "each",
-    "both", "several", "many", "one", "two", "three", "other", "another", "also", "very",
-    "scene", "rationale", "reason", "reasoning", "why", "description", "situation", "note",
-    "weather", "road", "traffic", "visibility", "safety",
+    "the",
+    "a",
+    "an",
+    "this",
+    "that",
+    "these",
+    "those",
+    "there",
+    "it",
+    "its",
+    "we",
+    "our",
+    "they",
+    "their",
+    "he",
+    "she",
+    "his",
+    "her",
+    "i",
+    "my",
+    "you",
+    "your",
+    "no",
+    "not",
+    "is",
+    "are",
+    "was",
+    "were",
+    "be",
+    "been",
+    "in",
+    "on",
+    "at",
+    "of",
+    "for",
+    "from",
+    "with",
+    "by",
+    "to",
+    "as",
+    "because",
+    "since",
+    "given",
+    "due",
+    "all",
+    "some",
+    "any",
+    "each",
+    "both",
+    "several",
+    "many",
+    "one",
+    "two",
+    "three",
+    "other",
+    "another",
+    "also",
+    "very",
+    "scene",
+    "rationale",
+    "reason",
+    "reasoning",
+    "why",
+    "description",
+    "situation",
+    "note",
+    "weather",
+    "road",
+    "traffic",
+    "visibility",
+    "safety",
 ];
 
 /// Whether an item reads as advice to the ego vehicle (an imperative, or a phrase with an
 /// advice word), rather than a description: only advice can carry a manoeuvre label.
 pub fn advice_item(s: &Sentence, a: usize, b: usize) -> bool {
-    if (a..b).any(|k| STRONG_ADVICE.contains(&s.w(k)) || ["consider", "recommend", "suggest", "let", "want", "plan"].contains(&s.w(k))) {
+    if (a..b).any(|k| {
+        STRONG_ADVICE.contains(&s.w(k))
+            || ["consider", "recommend", "suggest", "let", "want", "plan"].contains(&s.w(k))
+    }) {
         return true;
     }
-    let skip = ["then", "and", "so", "now", "just", "also", "please", "carefully", "gently", "first", "next", "finally", ":", ","];
+    let skip = [
+        "then",
+        "and",
+        "so",
+        "now",
+        "just",
+        "also",
+        "please",
+        "carefully",
+        "gently",
+        "first",
+        "next",
+        "finally",
+        ":",
+        ",",
+    ];
     let Some(first) = (a..b).find(|&k| !skip.contains(&s.w(k))) else {
         return false;
     };
     let w = s.w(first);
-    let statement = (first + 1..b).any(|k| ["is", "are", "was", "were", "has", "have", "seems", "appears"].contains(&s.w(k)));
+    let statement = (first + 1..b).any(|k| {
+        [
+            "is", "are", "was", "were", "has", "have", "seems", "appears",
+        ]
+        .contains(&s.w(k))
+    });
     !NOT_IMPERATIVE.contains(&w) && !w.chars().all(|c| c.is_ascii_digit()) && !statement
 }
 
@@ -961,20 +1554,23 @@ pub fn mentions(sents: &[Sentence]) -> Vec<Mention> {
             let vetoes: Vec<(usize, usize)> = lr
                 .vetoes
                 .iter()
-                .flat_map(|v| v.find_iter(&s.norm).map(|m| (m.start(), m.end())).collect::<Vec<_>>())
+                .flat_map(|v| {
+                    v.find_iter(&s.norm)
+                        .map(|m| (m.start(), m.end()))
+                        .collect::<Vec<_>>()
+                })
                 .collect();
             let mut seen: Vec<(usize, usize)> = Vec::new();
             for r in &lr.rules {
                 // A rule may mark the mention inside its match with a group `m` ("pedestrians
                 // waiting at (the crossing)").
-                let spans: Vec<(usize, usize)> = r
-                    .re
-                    .captures_iter(&s.norm)
-                    .map(|c| {
-                        let g = c.name("m").or_else(|| c.get(0)).expect("group 0 exists");
-                        (g.start(), g.end())
-                    })
-                    .collect();
+                let spans: Vec<(usize, usize)> =
+                    r.re.captures_iter(&s.norm)
+                        .map(|c| {
+                            let g = c.name("m").or_else(|| c.get(0)).expect("group 0 exists");
+                            (g.start(), g.end())
+                        })
+                        .collect();
                 for (ms_, me_) in spans {
                     if vetoes.iter().any(|&(vs, ve)| vs < me_ && ms_ < ve) {
                         continue;
@@ -987,7 +1583,8 @@ pub fn mentions(sents: &[Sentence]) -> Vec<Mention> {
                     if r.kind == Kind::Action
                         && s.w(a).ends_with("ing")
                         && a > 0
-                        && ["the", "a", "an", "any", "its", "their", "his", "her"].contains(&s.w(a - 1))
+                        && ["the", "a", "an", "any", "its", "their", "his", "her"]
+                            .contains(&s.w(a - 1))
                     {
                         continue;
                     }
@@ -996,7 +1593,10 @@ pub fn mentions(sents: &[Sentence]) -> Vec<Mention> {
                     if r.kind == Kind::Action
                         && b == a + 1
                         && a > 0
-                        && ["the", "a", "an", "its", "their", "this", "that", "each", "every"].contains(&s.w(a - 1))
+                        && [
+                            "the", "a", "an", "its", "their", "this", "that", "each", "every",
+                        ]
+                        .contains(&s.w(a - 1))
                     {
                         continue;
                     }
@@ -1079,7 +1679,8 @@ pub fn mentions(sents: &[Sentence]) -> Vec<Mention> {
         let to = phrase_end(s, from).min(from + 5);
         let dest: Vec<&str> = (from..to).map(|j| s.w(j)).collect();
         let non_road = |w: &&str| NON_ROAD.contains(w);
-        let out_of = (m.b..k).any(|j| s.w(j) == "out") && (m.b..k).any(|j| NON_ROAD.contains(&s.w(j)));
+        let out_of =
+            (m.b..k).any(|j| s.w(j) == "out") && (m.b..k).any(|j| NON_ROAD.contains(&s.w(j)));
         if dest.is_empty() || dest.iter().any(non_road) || out_of {
             continue;
         }
@@ -1100,38 +1701,177 @@ pub fn mentions(sents: &[Sentence]) -> Vec<Mention> {
 
 /// Places a turn can go into that are not roads.
 const NON_ROAD: &[&str] = &[
-    "car", "park", "driveway", "drive", "petrol", "gas", "station", "parking", "lot",
-    "forecourt", "garage", "entrance", "space", "bay", "services", "supermarket", "shop",
-    "store", "wash", "yard", "depot", "campus", "hospital", "school", "drive through",
-    "lane", "lanes", "gap", "traffic", "queue", "it",
+    "car",
+    "park",
+    "driveway",
+    "drive",
+    "petrol",
+    "gas",
+    "station",
+    "parking",
+    "lot",
+    "forecourt",
+    "garage",
+    "entrance",
+    "space",
+    "bay",
+    "services",
+    "supermarket",
+    "shop",
+    "store",
+    "wash",
+    "yard",
+    "depot",
+    "campus",
+    "hospital",
+    "school",
+    "drive through",
+    "lane",
+    "lanes",
+    "gap",
+    "traffic",
+    "queue",
+    "it",
 ];
 
 /// Weather words (G: adjust_speed_due_to_weather) and words that say the weather is fine.
 const WEATHER: &[&str] = &[
-    "rain", "raining", "rainy", "rainfall", "wet", "damp", "spray", "standing water",
-    "aquaplaning", "aquaplane", "hydroplane", "hydroplaning", "fog", "foggy", "mist", "misty",
-    "snow", "snowy", "snowing", "slush", "slushy", "ice", "icy", "frost", "frosty",
-    "freezing", "sleet", "hail", "wind", "windy", "winds", "crosswind", "crosswinds", "gust",
-    "gusts", "gusty", "storm", "downpour", "shower", "showers", "drizzle", "drizzling",
-    "pouring", "puddles", "flooded", "flooding", "slippery", "black ice", "weather",
-    "conditions", "hazy", "haze", "gale", "blizzard", "greasy", "river",
+    "rain",
+    "raining",
+    "rainy",
+    "rainfall",
+    "wet",
+    "damp",
+    "spray",
+    "standing water",
+    "aquaplaning",
+    "aquaplane",
+    "hydroplane",
+    "hydroplaning",
+    "fog",
+    "foggy",
+    "mist",
+    "misty",
+    "snow",
+    "snowy",
+    "snowing",
+    "slush",
+    "slushy",
+    "ice",
+    "icy",
+    "frost",
+    "frosty",
+    "freezing",
+    "sleet",
+    "hail",
+    "wind",
+    "windy",
+    "winds",
+    "crosswind",
+    "crosswinds",
+    "gust",
+    "gusts",
+    "gusty",
+    "storm",
+    "downpour",
+    "shower",
+    "showers",
+    "drizzle",
+    "drizzling",
+    "pouring",
+    "puddles",
+    "flooded",
+    "flooding",
+    "slippery",
+    "black ice",
+    "weather",
+    "conditions",
+    "hazy",
+    "haze",
+    "gale",
+    "blizzard",
+    "greasy",
+    "river",
 ];
 const WEATHER_NEG: &[&str] = &[
-    "not a factor", "not the issue", "plays no part", "no part", "does not require",
-    "not change", "too light to matter", "despite", "regardless of the weather",
-    "weather is fine", "weather is good", "weather is clear", "not relevant",
-    "does not affect", "no effect", "not an issue", "irrelevant", "not matter",
-    "weather factor : no", "no change of speed", "no need to slow",
+    "not a factor",
+    "not the issue",
+    "plays no part",
+    "no part",
+    "does not require",
+    "not change",
+    "too light to matter",
+    "despite",
+    "regardless of the weather",
+    "weather is fine",
+    "weather is good",
+    "weather is clear",
+    "not relevant",
+    "does not affect",
+    "no effect",
+    "not an issue",
+    "irrelevant",
+    "not matter",
+    "weather factor : no",
+    "no change of speed",
+    "no need to slow",
 ];
 /// Non-weather reasons for a speed change ("slow down for the roundabout").
 const HAZARDS: &[&str] = &[
-    "junction", "roundabout", "intersection", "crossroads", "crossing", "zebra", "crosswalk",
-    "light", "lights", "signal", "pedestrian", "pedestrians", "cyclist", "cyclists", "queue",
-    "traffic", "car", "vehicle", "bus", "truck", "lorry", "van", "bend", "corner", "school",
-    "bump", "child", "children", "animal", "deer", "works", "roadworks", "cones", "tractor",
-    "hazard", "people", "man", "woman", "dog", "horse", "darkness",
-    "dark", "night", "sign", "stop", "turn", "exit", "motorcycle", "ambulance", "kids",
-    "pothole", "obstacle", "congestion", "jam",
+    "junction",
+    "roundabout",
+    "intersection",
+    "crossroads",
+    "crossing",
+    "zebra",
+    "crosswalk",
+    "light",
+    "lights",
+    "signal",
+    "pedestrian",
+    "pedestrians",
+    "cyclist",
+    "cyclists",
+    "queue",
+    "traffic",
+    "car",
+    "vehicle",
+    "bus",
+    "truck",
+    "lorry",
+    "van",
+    "bend",
+    "corner",
+    "school",
+    "bump",
+    "child",
+    "children",
+    "animal",
+    "deer",
+    "works",
+    "roadworks",
+    "cones",
+    "tractor",
+    "hazard",
+    "people",
+    "man",
+    "woman",
+    "dog",
+    "horse",
+    "darkness",
+    "dark",
+    "night",
+    "sign",
+    "stop",
+    "turn",
+    "exit",
+    "motorcycle",
+    "ambulance",
+    "kids",
+    "pothole",
+    "obstacle",
+    "congestion",
+    "jam",
 ];
 
 fn has_any(s: &Sentence, from: usize, to: usize, words: &[&str]) -> bool {
@@ -1140,11 +1880,9 @@ fn has_any(s: &Sentence, from: usize, to: usize, words: &[&str]) -> bool {
 
 /// Whether sentence `s` mentions weather outside a negated phrase.
 fn weather_in(s: &Sentence, from: usize, to: usize) -> bool {
-    (from..to.min(s.words.len())).any(|k| {
-        any_seq_at(s, k, WEATHER)
-            && !(s.w(k) == "conditions" && !any_seq_at(s, k.saturating_sub(2), &["the conditions", "these conditions", "weather conditions", "in conditions"]))
-            && !negated_scene(s, k, k + 1)
-    })
+    // "conditions" alone names no weather (G: only when the conditions are the weather).
+    (from..to.min(s.words.len()))
+        .any(|k| any_seq_at(s, k, WEATHER) && s.w(k) != "conditions" && !negated_scene(s, k, k + 1))
 }
 
 /// The guidelines' decision for the rule labels present in `ids`, from the mentions.
@@ -1188,7 +1926,12 @@ pub fn decide(sents: &[Sentence], ms: &[Mention]) -> Vec<(&'static str, bool, Op
             }
             "drive_as_normal" => {
                 let changes = [
-                    "brake", "accelerate", "stop", "turn_left", "turn_right", "merge",
+                    "brake",
+                    "accelerate",
+                    "stop",
+                    "turn_left",
+                    "turn_right",
+                    "merge",
                     "yield_to_traffic",
                 ];
                 let changed = changes.iter().any(|c| first_pos(c).is_some())
@@ -1198,7 +1941,17 @@ pub fn decide(sents: &[Sentence], ms: &[Mention]) -> Vec<(&'static str, bool, Op
                         s,
                         0,
                         s.words.len(),
-                        &["parked", "car park", "parking lot", "engine idling", "pointing at a wall", "not possible to recommend", "can not be made out", "too dark", "not driving"],
+                        &[
+                            "parked",
+                            "car park",
+                            "parking lot",
+                            "engine idling",
+                            "pointing at a wall",
+                            "not possible to recommend",
+                            "can not be made out",
+                            "too dark",
+                            "not driving",
+                        ],
                     )
                 });
                 match first_pos(id) {
@@ -1243,8 +1996,13 @@ fn weather_decision(sents: &[Sentence], ms: &[Mention], any_neg: bool) -> Option
                 && (o.b <= m.a || o.a >= m.b)
         });
         let (lo, hi) = if crowded {
-            let lo = (0..m.a).rev().find(|&k| is_item_break(s.w(k))).map_or(0, |k| k + 1);
-            let hi = (m.b..s.words.len()).find(|&k| is_item_break(s.w(k)) && s.w(k) != "because").unwrap_or(s.words.len());
+            let lo = (0..m.a)
+                .rev()
+                .find(|&k| is_item_break(s.w(k)))
+                .map_or(0, |k| k + 1);
+            let hi = (m.b..s.words.len())
+                .find(|&k| is_item_break(s.w(k)) && s.w(k) != "because")
+                .unwrap_or(s.words.len());
             (lo, hi)
         } else {
             (0, s.words.len())
@@ -1263,7 +2021,24 @@ fn weather_decision(sents: &[Sentence], ms: &[Mention], any_neg: bool) -> Option
         // A brake or accelerate phrase: linked by a weather word in its sentence that is not
         // overridden by an explicit other reason, or the weather being the only motivation.
         let after_reason = (m.b..s.words.len()).find(|&k| {
-            any_seq_at(s, k, &["for", "because", "due to", "owing to", "as", "since", "given", "on the approach", "approaching", "to avoid", "so that", "before"])
+            any_seq_at(
+                s,
+                k,
+                &[
+                    "for",
+                    "because",
+                    "due to",
+                    "owing to",
+                    "as",
+                    "since",
+                    "given",
+                    "on the approach",
+                    "approaching",
+                    "to avoid",
+                    "so that",
+                    "before",
+                ],
+            )
         });
         let other_reason = after_reason.is_some_and(|k| {
             let e = phrase_end(s, k + 1).max(k + 3);
@@ -1283,7 +2058,9 @@ fn weather_decision(sents: &[Sentence], ms: &[Mention], any_neg: bool) -> Option
         }
         if !other_reason && weather_anywhere && !any_neg {
             let hazard_elsewhere = sents.iter().enumerate().any(|(j, t)| {
-                j != m.sentence && has_any(t, 0, t.words.len(), HAZARDS) && !weather_in(t, 0, t.words.len())
+                j != m.sentence
+                    && has_any(t, 0, t.words.len(), HAZARDS)
+                    && !weather_in(t, 0, t.words.len())
             });
             if !hazard_elsewhere {
                 return Some(i);
@@ -1317,36 +2094,78 @@ mod tests {
     #[test]
     fn guideline_worked_cases() {
         let cases: &[(&str, &[&str])] = &[
-            ("Turn right at the roundabout (third exit).", &["junction_ahead", "turn_right"]),
-            ("Road is dry, weather not a factor. Brake for the queue ahead.", &["brake"]),
+            (
+                "Turn right at the roundabout (third exit).",
+                &["junction_ahead", "turn_right"],
+            ),
+            (
+                "Road is dry, weather not a factor. Brake for the queue ahead.",
+                &["brake"],
+            ),
             ("Stop at the red light.", &["stop", "traffic_light_ahead"]),
-            ("Slow down, roundabout ahead, be ready to stop.", &["brake", "junction_ahead"]),
+            (
+                "Slow down, roundabout ahead, be ready to stop.",
+                &["brake", "junction_ahead"],
+            ),
             ("Consider changing into the left lane.", &["merge"]),
             ("Be prepared to give way to the bus.", &[]),
             ("If the light turns amber, stop.", &["traffic_light_ahead"]),
-            ("Pedestrians are crossing; stop and let them cross.", &["stop"]),
-            ("Give way to pedestrians at the zebra.", &["pedestrian_crossing_ahead", "yield_to_traffic"]),
+            (
+                "Pedestrians are crossing; stop and let them cross.",
+                &["stop"],
+            ),
+            (
+                "Give way to pedestrians at the zebra.",
+                &["pedestrian_crossing_ahead", "yield_to_traffic"],
+            ),
             ("Keep left and continue.", &["drive_as_normal"]),
-            ("Move into the left-turn lane and turn left at the lights.", &["merge", "traffic_light_ahead", "turn_left"]),
+            (
+                "Move into the left-turn lane and turn left at the lights.",
+                &["merge", "traffic_light_ahead", "turn_left"],
+            ),
             ("Take the next left.", &["junction_ahead", "turn_left"]),
-            ("It's raining; slow down.", &["adjust_speed_due_to_weather", "brake"]),
+            (
+                "It's raining; slow down.",
+                &["adjust_speed_due_to_weather", "brake"],
+            ),
             ("It's raining. Slow down for the cyclist ahead.", &["brake"]),
             ("Merge in turn with the lane on the right.", &["merge"]),
-            ("Follow the lorry at a safe distance and carry on.", &["drive_as_normal", "maintain_safe_distance"]),
+            (
+                "Follow the lorry at a safe distance and carry on.",
+                &["drive_as_normal", "maintain_safe_distance"],
+            ),
             ("Nothing notable. Maintain speed.", &["drive_as_normal"]),
-            ("Signal right, check your mirror, move into the right lane.", &["check_blind_spot", "merge"]),
+            (
+                "Signal right, check your mirror, move into the right lane.",
+                &["check_blind_spot", "merge"],
+            ),
             ("No need to stop, just slow down.", &["brake"]),
             ("The car ahead is braking, so brake too.", &["brake"]),
             ("Do not turn right on red here.", &["traffic_light_ahead"]),
-            ("There is no traffic light at this junction.", &["junction_ahead"]),
-            ("Don't tailgate the van, leave more room.", &["maintain_safe_distance"]),
+            (
+                "There is no traffic light at this junction.",
+                &["junction_ahead"],
+            ),
+            (
+                "Don't tailgate the van, leave more room.",
+                &["maintain_safe_distance"],
+            ),
             ("The driver may need to brake, turn left and give way.", &[]),
-            ("Reduce speed because of the heavy rain.", &["adjust_speed_due_to_weather", "brake"]),
+            (
+                "Reduce speed because of the heavy rain.",
+                &["adjust_speed_due_to_weather", "brake"],
+            ),
             ("Hang a left onto Maple.", &["junction_ahead", "turn_left"]),
             ("Keep left past the traffic island.", &[]),
             ("The van ahead is turning left.", &[]),
-            ("Take the second exit at the roundabout.", &["junction_ahead"]),
-            ("Night. Street lights on. Brake lights of car ahead visible. Wipers on.", &[]),
+            (
+                "Take the second exit at the roundabout.",
+                &["junction_ahead"],
+            ),
+            (
+                "Night. Street lights on. Brake lights of car ahead visible. Wipers on.",
+                &[],
+            ),
         ];
         let mut bad = Vec::new();
         for (text, want) in cases {

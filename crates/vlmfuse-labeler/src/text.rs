@@ -80,9 +80,35 @@ const REWRITES: &[(&str, &str)] = &[
 
 /// Connectives that end a negation's scope (the cue negates its own phrase only).
 pub const NEG_BREAK: &[&str] = &[
-    "but", "just", "instead", "so", "then", "and", "because", "since", "while", "although",
-    "though", "whereas", "however", "yet", "until", "unless", "once", "when", "otherwise",
-    "simply", "only", "rather", "as", "after", "before", "therefore", "thus", "which", "that",
+    "but",
+    "just",
+    "instead",
+    "so",
+    "then",
+    "and",
+    "because",
+    "since",
+    "while",
+    "although",
+    "though",
+    "whereas",
+    "however",
+    "yet",
+    "until",
+    "unless",
+    "once",
+    "when",
+    "otherwise",
+    "simply",
+    "only",
+    "rather",
+    "as",
+    "after",
+    "before",
+    "therefore",
+    "thus",
+    "which",
+    "that",
     "if",
 ];
 
@@ -92,8 +118,20 @@ pub const PUNCT_BREAK: &[&str] = &[",", ";", ":", "(", ")", "-", "=", "?", "!"];
 /// Connectives that end a hedge's scope (G2: a hedge does not spread past "but", "and then
 /// definitely", or into a new main clause introduced by "so").
 pub const HEDGE_BREAK: &[&str] = &[
-    "but", "however", "although", "though", "whereas", "definitely", "certainly",
-    "so", "therefore", "thus", "instead", "anyway", "regardless", "still",
+    "but",
+    "however",
+    "although",
+    "though",
+    "whereas",
+    "definitely",
+    "certainly",
+    "so",
+    "therefore",
+    "thus",
+    "instead",
+    "anyway",
+    "regardless",
+    "still",
 ];
 
 /// Words of the domain that the typo corrector may correct towards. Everything the rules key
@@ -118,38 +156,36 @@ const LEXICON: &str = "ahead accelerate accelerating acceleration accelerator ad
 
 /// Ordinary words that are one edit away from a lexicon word and must stay as written.
 const KEEP: &[&str] = &[
-    "sight", "night", "might", "tight", "eight", "fight", "bright", "slight", "flight",
-    "lift", "loft", "list", "lost", "last", "less", "lest", "lean", "late", "line", "lines",
-    "like", "lime", "live", "life", "lake", "load", "lead", "read", "ride", "rode", "role",
-    "rule", "rate", "race", "rail", "rain", "gain", "main", "pain", "raid", "rein", "mist",
-    "must", "most", "mast", "wind", "kind", "mind", "find", "bind", "wine", "wise", "wide",
-    "stay", "stab", "step", "stem", "stun", "shop", "ship", "slot", "slit", "slim", "slip",
-    "blow", "glow", "flow", "show", "snow", "stow", "grow", "brow", "know", "knew", "slew",
-    "spit", "spin", "span", "spun", "spat", "spotted", "turf", "tune", "torn", "burn", "tern",
-    "bake", "make", "take", "wake", "lake", "fake", "cake", "rake", "sake", "bike", "like",
-    "field", "wield", "shield", "wait", "bait", "gait", "weight", "height", "fright",
-    "freight", "brakes", "breaks", "broke", "brave", "grave", "crave", "drove", "prove",
-    "stone", "store", "stare", "state", "stole", "scope", "slope", "close", "chose", "those",
-    "these", "there", "where", "three", "here", "hear", "near", "rear", "gear", "year",
-    "clean", "clear", "cleat", "drop", "crop", "prop", "shop", "stopped", "topped", "hopped",
-    "spotted", "crossed", "cross", "gross", "press", "dress", "boss", "moss", "loss",
-    "signs", "sign", "design", "assign", "mirrored", "error", "terror", "pass", "past",
-    "paste", "pause", "place", "plane", "plan", "plain", "brain", "train", "drain", "grain",
-    "strain", "strait", "trait", "lights", "rights", "nights", "fights", "flights",
-    "turns", "runs", "rings", "roads", "loads", "toads", "goads", "lane", "land", "lend",
-    "lens", "lent", "lift", "left", "gift", "rift", "shift", "drift", "swift", "thrift",
-    "yields", "fields", "speedy", "spend", "spent", "spell", "spill", "still", "stall",
-    "steal", "steel", "stool", "spool", "stock", "stuck", "stack", "track", "trick", "truck",
-    "trunk", "drunk", "brake", "wheel", "while", "whole", "white", "write", "wrote", "route",
-    "rout", "rough", "cough", "tough", "though", "through", "thought", "taught", "caught",
-    "ought", "bought", "sought", "fought", "drought", "doubt", "about", "abut", "front",
-    "driver", "drivers", "river", "rivers", "frosty", "lover", "liver", "lever", "cover",
-    "rover", "mover", "seeing", "being", "doing", "gone", "done", "tone", "bone", "lone",
-    "cones", "cone", "zone", "zones", "pole", "poles", "hole", "holes", "mile", "miles",
-    "tile", "pile", "wine", "wind", "winds", "windy", "trail", "trailer", "trial", "rails",
-    "sleek", "slick", "slice", "spice", "space", "spare", "spark", "speak", "spear", "steer",
-    "sheer", "cheer", "stair", "stain", "stall", "start", "stark", "stars", "stare", "stove",
-    "above", "glove", "grove", "drove", "droves", "shove", "shoved", "grader", "greener",
+    "sight", "night", "might", "tight", "eight", "fight", "bright", "slight", "flight", "lift",
+    "loft", "list", "lost", "last", "less", "lest", "lean", "late", "line", "lines", "like",
+    "lime", "live", "life", "lake", "load", "lead", "read", "ride", "rode", "role", "rule", "rate",
+    "race", "rail", "rain", "gain", "main", "pain", "raid", "rein", "mist", "must", "most", "mast",
+    "wind", "kind", "mind", "find", "bind", "wine", "wise", "wide", "stay", "stab", "step", "stem",
+    "stun", "shop", "ship", "slot", "slit", "slim", "slip", "blow", "glow", "flow", "show", "snow",
+    "stow", "grow", "brow", "know", "knew", "slew", "spit", "spin", "span", "spun", "spat",
+    "spotted", "turf", "tune", "torn", "burn", "tern", "bake", "make", "take", "wake", "lake",
+    "fake", "cake", "rake", "sake", "bike", "like", "field", "wield", "shield", "wait", "bait",
+    "gait", "weight", "height", "fright", "freight", "brakes", "breaks", "broke", "brave", "grave",
+    "crave", "drove", "prove", "stone", "store", "stare", "state", "stole", "scope", "slope",
+    "close", "chose", "those", "these", "there", "where", "three", "here", "hear", "near", "rear",
+    "gear", "year", "clean", "clear", "cleat", "drop", "crop", "prop", "shop", "stopped", "topped",
+    "hopped", "spotted", "crossed", "cross", "gross", "press", "dress", "boss", "moss", "loss",
+    "signs", "sign", "design", "assign", "mirrored", "error", "terror", "pass", "past", "paste",
+    "pause", "place", "plane", "plan", "plain", "brain", "train", "drain", "grain", "strain",
+    "strait", "trait", "lights", "rights", "nights", "fights", "flights", "turns", "runs", "rings",
+    "roads", "loads", "toads", "goads", "lane", "land", "lend", "lens", "lent", "lift", "left",
+    "gift", "rift", "shift", "drift", "swift", "thrift", "yields", "fields", "speedy", "spend",
+    "spent", "spell", "spill", "still", "stall", "steal", "steel", "stool", "spool", "stock",
+    "stuck", "stack", "track", "trick", "truck", "trunk", "drunk", "brake", "wheel", "while",
+    "whole", "white", "write", "wrote", "route", "rout", "rough", "cough", "tough", "though",
+    "through", "thought", "taught", "caught", "ought", "bought", "sought", "fought", "drought",
+    "doubt", "about", "abut", "front", "driver", "drivers", "river", "rivers", "frosty", "lover",
+    "liver", "lever", "cover", "rover", "mover", "seeing", "being", "doing", "gone", "done",
+    "tone", "bone", "lone", "cones", "cone", "zone", "zones", "pole", "poles", "hole", "holes",
+    "mile", "miles", "tile", "pile", "wine", "wind", "winds", "windy", "trail", "trailer", "trial",
+    "rails", "sleek", "slick", "slice", "spice", "space", "spare", "spark", "speak", "spear",
+    "steer", "sheer", "cheer", "stair", "stain", "stall", "start", "stark", "stars", "stare",
+    "stove", "above", "glove", "grove", "drove", "droves", "shove", "shoved", "grader", "greener",
     "braid", "brain", "bread", "break", "breaking", "broken", "brakes", "breaks", "brave",
 ];
 
@@ -173,13 +209,15 @@ fn osa(a: &[u8], b: &[u8], cap: usize) -> usize {
     for (i, row) in d.iter_mut().enumerate() {
         row[0] = i;
     }
-    for j in 0..=m {
-        d[0][j] = j;
+    for (j, v) in d[0].iter_mut().enumerate() {
+        *v = j;
     }
     for i in 1..=n {
         for j in 1..=m {
             let cost = usize::from(a[i - 1] != b[j - 1]);
-            let mut v = (d[i - 1][j] + 1).min(d[i][j - 1] + 1).min(d[i - 1][j - 1] + cost);
+            let mut v = (d[i - 1][j] + 1)
+                .min(d[i][j - 1] + 1)
+                .min(d[i - 1][j - 1] + cost);
             if i > 1 && j > 1 && a[i - 1] == b[j - 2] && a[i - 2] == b[j - 1] {
                 v = v.min(d[i - 2][j - 2] + 1);
             }
@@ -440,8 +478,10 @@ fn split_sentences(line: &str) -> Vec<String> {
                     .rsplit(|c: char| c.is_whitespace() || c == '(')
                     .next()
                     .unwrap_or("");
-                let abbrev = ["e.g.", "i.e.", "etc.", "approx.", "vs.", "mr.", "mrs.", "st.", "no."]
-                    .contains(&last_word)
+                let abbrev = [
+                    "e.g.", "i.e.", "etc.", "approx.", "vs.", "mr.", "mrs.", "st.", "no.",
+                ]
+                .contains(&last_word)
                     || next.is_some_and(|n| n.is_ascii_alphabetic());
                 !in_number && !abbrev
             }
@@ -493,7 +533,9 @@ fn normalize_with(s: &str, speller: &Speller) -> String {
                 // clause break.
                 let prev = i.checked_sub(1).map(|j| chars[j]);
                 let next = chars.get(i + 1).copied();
-                if prev.is_some_and(|p| p.is_alphanumeric()) && next.is_some_and(|n| n.is_alphanumeric()) {
+                if prev.is_some_and(|p| p.is_alphanumeric())
+                    && next.is_some_and(|n| n.is_alphanumeric())
+                {
                     spaced.push(' ');
                 } else {
                     spaced.push_str(" - ");
@@ -502,7 +544,9 @@ fn normalize_with(s: &str, speller: &Speller) -> String {
             '.' => {
                 let prev = i.checked_sub(1).map(|j| chars[j]);
                 let next = chars.get(i + 1).copied();
-                if prev.is_some_and(|p| p.is_ascii_digit()) && next.is_some_and(|n| n.is_ascii_digit()) {
+                if prev.is_some_and(|p| p.is_ascii_digit())
+                    && next.is_some_and(|n| n.is_ascii_digit())
+                {
                     spaced.push('.');
                 } else {
                     spaced.push(' ');
@@ -564,7 +608,10 @@ mod tests {
         assert_eq!(correct("night"), None);
         assert_eq!(correct("field"), None);
         assert_eq!(correct("the"), None);
-        assert_eq!(normalize("slow dwon theres a zebra crosing just ahaed"), "slow down there is a zebra crossing just ahead");
+        assert_eq!(
+            normalize("slow dwon theres a zebra crosing just ahaed"),
+            "slow down there is a zebra crossing just ahead"
+        );
     }
 
     #[test]
@@ -580,7 +627,9 @@ mod tests {
                 "why : e g the light is red",
             ]
         );
-        let j = sentences(r#"{"scene": "urban", "actions": ["slow down"], "if_needed": ["stop"], "brake": false}"#);
+        let j = sentences(
+            r#"{"scene": "urban", "actions": ["slow down"], "if_needed": ["stop"], "brake": false}"#,
+        );
         let n: Vec<&str> = j.iter().map(|x| x.norm.as_str()).collect();
         assert!(n.contains(&"if needed : stop"), "{n:?}");
         assert!(n.contains(&"brake : false"), "{n:?}");

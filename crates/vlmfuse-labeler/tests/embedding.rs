@@ -64,7 +64,10 @@ fn issue_examples_are_read_as_the_guidelines_say() {
             "Avoid following the truck too closely.",
             &["maintain_safe_distance"],
         ),
-        ("Pedestrians are crossing; stop and let them cross.", &["stop"]),
+        (
+            "Pedestrians are crossing; stop and let them cross.",
+            &["stop"],
+        ),
         (
             "Give way to pedestrians at the zebra.",
             &["pedestrian_crossing_ahead", "yield_to_traffic"],
@@ -93,7 +96,10 @@ fn evidence_names_the_clause_and_the_discounted_mentions() {
     assert_eq!(out.labels, vec!["brake", "junction_ahead"]);
     let ev = |id: &str| out.evidence.iter().find(|e| e.label == id).cloned();
     let brake = ev("brake").expect("evidence for brake");
-    assert!(brake.accepted && brake.source == EvidenceSource::Rule, "{brake:?}");
+    assert!(
+        brake.accepted && brake.source == EvidenceSource::Rule,
+        "{brake:?}"
+    );
     assert_eq!(brake.clause, "No need to stop, just slow down.");
     let stop = ev("stop").expect("the negated stop is shown");
     assert!(!stop.accepted && stop.negated && !stop.hedged, "{stop:?}");
@@ -163,7 +169,11 @@ async fn a_round_is_one_encoder_call_and_matches_single_labels() {
         "Red light ahead. Stop at the line.",
     ];
     let batch = l.label_batch_blocking(&texts).unwrap();
-    assert_eq!(enc.calls.lock().unwrap().len(), 1, "one encoder pass per round");
+    assert_eq!(
+        enc.calls.lock().unwrap().len(),
+        1,
+        "one encoder pass per round"
+    );
     for (t, b) in texts.iter().zip(&batch) {
         assert_eq!(&l.label_blocking(t).unwrap(), b);
     }
@@ -206,7 +216,10 @@ fn custom_ontology_works_from_names_and_descriptions() {
         )
         .unwrap();
     assert_eq!(out.labels, vec!["roadworks"], "{out:?}");
-    assert!(out.evidence.iter().all(|e| e.source == EvidenceSource::Embedding));
+    assert!(out
+        .evidence
+        .iter()
+        .all(|e| e.source == EvidenceSource::Embedding));
     // Unknown label ids in the config are rejected rather than ignored.
     let mut cfg = EmbeddingConfig::new(&a.minilm_dir);
     cfg.label_thresholds.insert("nope".into(), 0.5);

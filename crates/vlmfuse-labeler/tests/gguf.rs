@@ -159,7 +159,7 @@ fn tiny_models_match_transformers() {
             failures.push(format!("{}: greedy {greedy:?} vs {:?}", f.name(), r.greedy));
         }
         // A cached prefix continued with a chunk gives the full pass's logits.
-        if let Some(_) = m.snapshot() {
+        if m.snapshot().is_some() {
             m.reset();
             m.feed(&ids[..40]).unwrap();
             let mut snap = m.snapshot().unwrap();

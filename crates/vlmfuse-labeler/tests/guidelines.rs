@@ -20,7 +20,9 @@ fn quoted(line: &str) -> Vec<String> {
     let mut out = Vec::new();
     let mut rest = line;
     while let Some(a) = rest.find('"') {
-        let Some(b) = rest[a + 1..].find('"') else { break };
+        let Some(b) = rest[a + 1..].find('"') else {
+            break;
+        };
         out.push(rest[a + 1..a + 1 + b].to_string());
         rest = &rest[a + 1 + b + 1..];
     }
@@ -57,7 +59,10 @@ fn guideline_examples() {
             n += 1;
             let got = labels(&ex);
             if got.contains(label) != want {
-                bad.push(format!("[{label} {}] {ex:?} -> {got:?}", if want { "+" } else { "-" }));
+                bad.push(format!(
+                    "[{label} {}] {ex:?} -> {got:?}",
+                    if want { "+" } else { "-" }
+                ));
             }
         }
     }
@@ -92,5 +97,10 @@ fn guideline_examples() {
         }
     }
     assert!(n > 120, "parsed only {n} examples");
-    assert!(bad.is_empty(), "{} of {n} examples:\n{}", bad.len(), bad.join("\n"));
+    assert!(
+        bad.is_empty(),
+        "{} of {n} examples:\n{}",
+        bad.len(),
+        bad.join("\n")
+    );
 }

@@ -100,7 +100,7 @@ fn md_types(ct: &Content, n: usize) -> Result<Vec<i32>, LabelerError> {
 enum Engine {
     Bpe(Box<Tokenizer>),
     Sp {
-        sp: SpTokenizer,
+        sp: Box<SpTokenizer>,
         /// Control and user-defined tokens, matched whole, longest first.
         specials: AhoCorasick,
         special_ids: Vec<u32>,
@@ -174,7 +174,7 @@ impl GgufTokenizer {
                     .collect();
                 (
                     Engine::Sp {
-                        sp,
+                        sp: Box::new(sp),
                         specials,
                         special_ids,
                     },
