@@ -1,20 +1,29 @@
-//! Evaluates the local labelers on the test split of `tests/data/labeler/answers.jsonl`.
+//! Scores every labeler on the held-out test split of `tests/data/labeler/answers.jsonl`, with
+//! per-label F1.
 //!
 //! ```text
-//! cargo run -p vlmfuse-labeler --example labeler_eval --release -- [--tune] [--only embedding|gguf]
-//!     [--gguf-train N] [--gguf-test N]
+//! cargo run --release -p vlmfuse-labeler --example labeler_eval -- [--tune]
+//!     [--only embedding,rules,remote,gguf] [--gguf PATH] [--gguf-test N] [--json FILE]
 //! ```
-//! `--tune` fits thresholds (and the embedding clause margin) on the training split and prints
-//! them as the constants to paste into the source; without it the built-in defaults are scored.
-//! The remote (OpenAI-compatible) labeler is not evaluated: there is no real server here.
+//! * `embedding`: the served default (rules + MiniLM paraphrases);
+//! * `rules`: the rules alone (an ablation: what the embeddings add);
+//! * `remote`: the OpenAI-compatible labeler against a local fake server that answers with
+//!   the embedding labeler, so the number measures the remote client's prompt, transport and
+//!   validation path with a known model behind it;
+//! * `gguf`: the in-process GGUF labeler (default: the fetched gemma-3-270m, a base model).
+//!
+//! `--tune` fits the embedding thresholds on the TRAIN split only and prints them as the
+//! constants to paste into `embedding.rs`; the test split is only scored.
 
+use std::sync::Arc;
 use std::time::Instant;
 use vlmfuse_labeler::{
-    BlockingLabeler, EmbeddingConfig, EmbeddingLabeler, GgufConfig, GgufLabeler, Ontology,
+    BlockingLabeler, EmbeddingConfig, EmbeddingLabeler, GgufConfig, GgufLabeler, Labeler, Ontology,
+    OpenAiConfig, OpenAiLabeler,
 };
 use vlmfuse_testkit::assets::{ensure_assets, AssetsUnavailable};
 use vlmfuse_testkit::labeler_eval::{
-    default_dataset_path, f1_scores, load_dataset, to_mask, tune_thresholds, Example,
+    default_dataset_path, f1_scores, load_dataset, to_mask, Example, F1,
 };
 
 fn arg_value(args: &[String], name: &str) -> Option<String> {
@@ -23,35 +32,93 @@ fn arg_value(args: &[String], name: &str) -> Option<String> {
         .and_then(|i| args.get(i + 1).cloned())
 }
 
-fn grid(lo: f32, hi: f32, step: f32) -> Vec<f32> {
-    let n = ((hi - lo) / step).round() as usize;
-    (0..=n).map(|i| lo + i as f32 * step).collect()
+struct Row {
+    name: String,
+    f: F1,
+    per_label: Vec<f64>,
+    ms: f64,
+    n: usize,
 }
 
-fn apply(scores: &[Vec<f32>], th: &[f32]) -> Vec<Vec<bool>> {
-    scores
-        .iter()
-        .map(|r| r.iter().zip(th).map(|(s, t)| s >= t).collect())
+fn per_label(ontology: &Ontology, truth: &[Vec<bool>], pred: &[Vec<bool>]) -> Vec<f64> {
+    (0..ontology.len())
+        .map(|k| {
+            let col = |m: &[Vec<bool>]| m.iter().map(|r| vec![r[k]]).collect::<Vec<_>>();
+            f1_scores(&col(truth), &col(pred)).micro
+        })
         .collect()
 }
 
-fn per_label(ontology: &Ontology, truth: &[Vec<bool>], pred: &[Vec<bool>]) {
-    for (k, l) in ontology.labels().iter().enumerate() {
-        let col = |m: &[Vec<bool>]| m.iter().map(|r| vec![r[k]]).collect::<Vec<_>>();
-        let pos = truth.iter().filter(|r| r[k]).count();
-        println!(
-            "  {:<28} F1 {:.3} ({pos} positives)",
-            l.id,
-            f1_scores(&col(truth), &col(pred)).micro
-        );
+fn masks(o: &Ontology, outs: &[Vec<String>]) -> anyhow::Result<Vec<Vec<bool>>> {
+    Ok(outs
+        .iter()
+        .map(|l| to_mask(o, l))
+        .collect::<Result<_, _>>()?)
+}
+
+fn label_f1(scores: &[f32], truth: &[bool], base: &[bool], t: f32) -> f64 {
+    let (mut tp, mut fp, mut fnn) = (0, 0, 0);
+    for ((&s, &y), &b) in scores.iter().zip(truth).zip(base) {
+        match (y, b || s >= t) {
+            (true, true) => tp += 1,
+            (false, true) => fp += 1,
+            (true, false) => fnn += 1,
+            _ => {}
+        }
     }
+    if tp + fp + fnn == 0 {
+        1.0
+    } else {
+        2.0 * tp as f64 / (2 * tp + fp + fnn) as f64
+    }
+}
+
+/// A fake OpenAI-compatible server whose "model" is the embedding labeler.
+async fn fake_server(lab: Arc<EmbeddingLabeler>) -> String {
+    use axum::{extract::State, routing::post, Json, Router};
+    use serde_json::{json, Value};
+    async fn chat(
+        State(lab): State<Arc<EmbeddingLabeler>>,
+        Json(body): Json<Value>,
+    ) -> Json<Value> {
+        let user = body["messages"][1]["content"].as_str().unwrap_or_default();
+        let text = user
+            .split_once("<<<\n")
+            .and_then(|(_, r)| r.rsplit_once("\n>>>"))
+            .map_or(user, |(t, _)| t)
+            .to_string();
+        let lab2 = lab.clone();
+        let labels = tokio::task::spawn_blocking(move || lab2.label_blocking(&text))
+            .await
+            .ok()
+            .and_then(Result::ok)
+            .map(|o| o.labels)
+            .unwrap_or_default();
+        let content = json!({ "labels": labels }).to_string();
+        Json(
+            json!({"choices": [{"index": 0, "message": {"role": "assistant", "content": content}}]}),
+        )
+    }
+    let app = Router::new()
+        .route("/v1/chat/completions", post(chat))
+        .with_state(lab);
+    vlmfuse_testkit::server::serve_local(app).await
 }
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let tune = args.iter().any(|a| a == "--tune");
-    let only = arg_value(&args, "--only");
-    let gguf_train: usize = arg_value(&args, "--gguf-train").map_or(60, |v| v.parse().unwrap());
+    let only: Vec<String> = arg_value(&args, "--only")
+        .map(|s| s.split(',').map(str::to_string).collect())
+        .unwrap_or_else(|| {
+            vec![
+                "embedding".into(),
+                "rules".into(),
+                "remote".into(),
+                "gguf".into(),
+            ]
+        });
+    let want = |n: &str| only.iter().any(|o| o == n);
     let gguf_test: usize =
         arg_value(&args, "--gguf-test").map_or(usize::MAX, |v| v.parse().unwrap());
 
@@ -65,7 +132,8 @@ fn main() -> anyhow::Result<()> {
     };
     let ontology = Ontology::default_driving();
     let data = load_dataset(&default_dataset_path())?;
-    let (train, test): (Vec<_>, Vec<_>) = data.iter().partition(|e| e.split == "train");
+    let (train, test): (Vec<&Example>, Vec<&Example>) =
+        data.iter().partition(|e| e.split == "train");
     let truth = |xs: &[&Example]| -> anyhow::Result<Vec<Vec<bool>>> {
         Ok(xs
             .iter()
@@ -79,167 +147,218 @@ fn main() -> anyhow::Result<()> {
         test.len(),
         ontology.len()
     );
-    let mut table = Vec::new();
+    let test_texts: Vec<&str> = test.iter().map(|e| e.text.as_str()).collect();
+    let mut table: Vec<Row> = Vec::new();
 
-    if only.as_deref().is_none_or(|o| o == "embedding") {
-        let t0 = Instant::now();
-        let lab =
-            EmbeddingLabeler::load(ontology.clone(), EmbeddingConfig::new(&assets.minilm_dir))?;
-        println!("embedding: loaded in {:.2?}", t0.elapsed());
-        if tune {
-            let sims_tr: Vec<_> = train
-                .iter()
-                .map(|e| lab.clause_sims(&e.text))
-                .collect::<Result<_, _>>()?;
-            let sims_te: Vec<_> = test
-                .iter()
-                .map(|e| lab.clause_sims(&e.text))
-                .collect::<Result<_, _>>()?;
-            let g = grid(0.30, 0.90, 0.01);
-            let mut best: Option<(f64, f32, f32, Vec<f32>)> = None;
-            for &margin in &[0.0f32, 0.02, 0.04, 0.06, 0.08, 0.1, 0.15, 0.2, 1.0] {
-                let s: Vec<Vec<f32>> = sims_tr
+    let t0 = Instant::now();
+    let emb = Arc::new(EmbeddingLabeler::load(
+        ontology.clone(),
+        EmbeddingConfig::new(&assets.minilm_dir),
+    )?);
+    println!("embedding: loaded in {:.2?}", t0.elapsed());
+
+    if tune {
+        // Thresholds of the embedding-eligible labels, on TRAIN only: the rules decide first,
+        // then each label's paraphrase threshold maximises that label's F1.
+        let texts: Vec<&str> = train.iter().map(|e| e.text.as_str()).collect();
+        let reads = emb.read_batch(&texts)?;
+        let none = vec![2.0f32; ontology.len()];
+        println!("const DEFAULT_THRESHOLDS: &[(&str, f32)] = &[");
+        for (k, l) in ontology.labels().iter().enumerate() {
+            if reads.iter().all(|r| r.best[k].is_none()) {
+                continue;
+            }
+            let y: Vec<bool> = train_y.iter().map(|r| r[k]).collect();
+            let f_at = |t: f32| {
+                let mut th = none.clone();
+                th[k] = t;
+                let p: Vec<bool> = reads
                     .iter()
-                    .map(|c| c.scores(ontology.len(), margin))
+                    .map(|r| emb.decide_with(r, &th).labels.contains(&l.id))
                     .collect();
-                let (glob, per) = tune_thresholds(&s, &train_y, &g, 8);
-                let f = f1_scores(&train_y, &apply(&s, &per)).micro;
-                let fg = f1_scores(&train_y, &apply(&s, &vec![glob; ontology.len()])).micro;
-                let s_te: Vec<Vec<f32>> = sims_te
-                    .iter()
-                    .map(|c| c.scores(ontology.len(), margin))
-                    .collect();
-                let te = f1_scores(&test_y, &apply(&s_te, &per));
-                println!(
-                    "  margin {margin:.2}: global {glob:.2} train micro {fg:.3}; per-label train micro {f:.3} (test micro {:.3} macro {:.3})",
-                    te.micro, te.macro_
-                );
-                if best.as_ref().is_none_or(|b| f > b.0 + 1e-9) {
-                    best = Some((f, margin, glob, per));
+                let b = vec![false; p.len()];
+                let s: Vec<f32> = p.iter().map(|&x| if x { 1.0 } else { 0.0 }).collect();
+                label_f1(&s, &y, &b, 0.5)
+            };
+            let mut best = (f_at(2.0), 2.0f32);
+            let mut t = 0.95f32;
+            while t >= 0.5 {
+                let f = f_at(t);
+                // Ties keep the higher threshold: a paraphrase match must earn its place.
+                if f > best.0 + 1e-9 {
+                    best = (f, t);
                 }
+                t -= 0.01;
             }
-            let (f, margin, glob, per) = best.unwrap();
-            println!("best on train: micro {f:.3}, margin {margin}, global threshold {glob:.2}");
-            println!("const DEFAULT_THRESHOLDS: &[(&str, f32)] = &[");
-            for (l, t) in ontology.labels().iter().zip(&per) {
-                println!("    (\"{}\", {t:.2}),", l.id);
-            }
-            println!("];");
-        }
-        let t0 = Instant::now();
-        let mut pred = Vec::new();
-        for e in &test {
-            let out = lab.label_blocking(&e.text)?;
-            pred.push(to_mask(&ontology, &out.labels)?);
-        }
-        let ms = t0.elapsed().as_secs_f64() * 1e3 / test.len() as f64;
-        let f = f1_scores(&test_y, &pred);
-        per_label(&ontology, &test_y, &pred);
-        if args.iter().any(|a| a == "--errors") {
-            // Errors on the TRAIN split only: the test split stays unseen while iterating.
-            let mut tr_pred = Vec::new();
-            for e in &train {
-                tr_pred.push(to_mask(&ontology, &lab.label_blocking(&e.text)?.labels)?);
-            }
-            for ((e, y), p) in train.iter().zip(&train_y).zip(&tr_pred) {
-                if y != p {
-                    let name = |m: &Vec<bool>, want: bool, other: &Vec<bool>| -> Vec<&str> {
-                        ontology
-                            .labels()
-                            .iter()
-                            .enumerate()
-                            .filter(|(k, _)| m[*k] == want && other[*k] != want)
-                            .map(|(_, l)| l.id.as_str())
-                            .collect()
-                    };
-                    println!(
-                        "--- {}: missed {:?} extra {:?}",
-                        e.id,
-                        name(y, true, p),
-                        name(p, true, y)
-                    );
-                    let cs = lab.clause_sims(&e.text)?;
-                    for (c, row) in cs.clauses.iter().zip(&cs.sims) {
-                        let (k, s) =
-                            row.iter()
-                                .enumerate()
-                                .fold(
-                                    (0, f32::NEG_INFINITY),
-                                    |b, (k, &s)| if s > b.1 { (k, s) } else { b },
-                                );
-                        println!(
-                            "    [{}] {c:?} -> {} {s:.2}",
-                            if vlmfuse_labeler::is_negated(c) {
-                                "neg"
-                            } else {
-                                "   "
-                            },
-                            ontology.labels()[k].id
-                        );
+            // How many labels a paraphrase match adds over the rules, and how many are right.
+            let base: Vec<bool> = reads
+                .iter()
+                .map(|r| emb.decide_with(r, &none).labels.contains(&l.id))
+                .collect();
+            let adds: Vec<String> = [0.95f32, 0.9, 0.85, 0.8, 0.75, 0.7, 0.65]
+                .iter()
+                .map(|&t| {
+                    let mut th = none.clone();
+                    th[k] = t;
+                    let (mut n, mut ok) = (0, 0);
+                    for ((r, &b), &yy) in reads.iter().zip(&base).zip(&y) {
+                        let on = emb.decide_with(r, &th).labels.contains(&l.id);
+                        if on && !b {
+                            n += 1;
+                            ok += usize::from(yy);
+                        }
                     }
-                }
-            }
+                    format!("{t:.2}:{ok}/{n}")
+                })
+                .collect();
+            println!(
+                "    (\"{}\", {:.2}), // train F1 {:.3}; added right/added at t: {}",
+                l.id,
+                best.1,
+                best.0,
+                adds.join(" ")
+            );
         }
-        table.push((
-            "embedding (all-MiniLM-L6-v2)".to_string(),
-            f,
-            ms,
-            test.len(),
-        ));
+        println!("];");
     }
 
-    if only.as_deref().is_none_or(|o| o == "gguf") {
+    if want("embedding") {
+        // Warm up, then the whole split in rounds of three answers, as the service labels them.
+        emb.label_batch_blocking(&test_texts[..3.min(test_texts.len())])?;
         let t0 = Instant::now();
-        let mut cfg = GgufConfig::new(&assets.gemma_gguf);
-        let lab = GgufLabeler::load(ontology.clone(), cfg.clone())?;
-        println!("gguf: loaded and calibrated in {:.2?}", t0.elapsed());
-        let test_n = test.len().min(gguf_test);
-        let lab = if tune {
-            let n = train.len().min(gguf_train);
-            let mut s = Vec::new();
-            for e in &train[..n] {
-                let out = lab.label_blocking(&e.text)?;
-                s.push(out.scores.iter().map(|x| x.score).collect::<Vec<f32>>());
-            }
-            let (glob, per) = tune_thresholds(&s, &train_y[..n], &grid(0.02, 0.98, 0.02), 8);
-            println!("gguf tuned on {n} train answers: global threshold {glob:.2}");
-            println!(
-                "  per-label: {:?}",
-                per.iter().map(|t| format!("{t:.2}")).collect::<Vec<_>>()
+        let mut labels = Vec::new();
+        for chunk in test_texts.chunks(3) {
+            labels.extend(
+                emb.label_batch_blocking(chunk)?
+                    .into_iter()
+                    .map(|o| o.labels),
             );
-            cfg.threshold = glob;
-            GgufLabeler::load(ontology.clone(), cfg)?
-        } else {
-            lab
-        };
-        let t0 = Instant::now();
-        let mut pred = Vec::new();
-        for e in &test[..test_n] {
-            let out = lab.label_blocking(&e.text)?;
-            pred.push(to_mask(&ontology, &out.labels)?);
         }
-        let ms = t0.elapsed().as_secs_f64() * 1e3 / test_n as f64;
-        let f = f1_scores(&test_y[..test_n], &pred);
-        per_label(&ontology, &test_y[..test_n], &pred);
-        table.push((
-            "gguf (gemma-3-270m Q4_K_M, yes/no)".to_string(),
-            f,
+        let ms = t0.elapsed().as_secs_f64() * 1e3 / test.len() as f64;
+        let pred = masks(&ontology, &labels)?;
+        table.push(Row {
+            name: "embedding (rules + all-MiniLM-L6-v2)".into(),
+            f: f1_scores(&test_y, &pred),
+            per_label: per_label(&ontology, &test_y, &pred),
             ms,
-            test_n,
-        ));
+            n: test.len(),
+        });
+    }
+
+    if want("rules") {
+        let mut cfg = EmbeddingConfig::new(&assets.minilm_dir);
+        cfg.label_thresholds = ontology.ids().map(|id| (id.to_string(), 2.0f32)).collect();
+        let r = EmbeddingLabeler::load(ontology.clone(), cfg)?;
+        let t0 = Instant::now();
+        let mut labels = Vec::new();
+        for chunk in test_texts.chunks(3) {
+            labels.extend(r.label_batch_blocking(chunk)?.into_iter().map(|o| o.labels));
+        }
+        let ms = t0.elapsed().as_secs_f64() * 1e3 / test.len() as f64;
+        let pred = masks(&ontology, &labels)?;
+        table.push(Row {
+            name: "rules alone (ablation)".into(),
+            f: f1_scores(&test_y, &pred),
+            per_label: per_label(&ontology, &test_y, &pred),
+            ms,
+            n: test.len(),
+        });
+    }
+
+    if want("remote") {
+        let rt = tokio::runtime::Runtime::new()?;
+        let labels: Vec<Vec<String>> = rt.block_on(async {
+            let url = fake_server(emb.clone()).await;
+            let remote = OpenAiLabeler::new(
+                ontology.clone(),
+                OpenAiConfig {
+                    base_url: url,
+                    model: "fake-embedding".into(),
+                    ..Default::default()
+                },
+            )?;
+            let mut out = Vec::new();
+            for t in &test_texts {
+                out.push(remote.label(t).await?.labels);
+            }
+            Ok::<_, anyhow::Error>(out)
+        })?;
+        let pred = masks(&ontology, &labels)?;
+        table.push(Row {
+            name: "remote (OpenAI-compatible, fake server backed by the embedding labeler)".into(),
+            f: f1_scores(&test_y, &pred),
+            per_label: per_label(&ontology, &test_y, &pred),
+            ms: f64::NAN,
+            n: test.len(),
+        });
+    }
+
+    if want("gguf") {
+        let path = arg_value(&args, "--gguf").map_or(assets.gemma_gguf.clone(), Into::into);
+        let t0 = Instant::now();
+        let lab = GgufLabeler::load(ontology.clone(), GgufConfig::new(&path))?;
+        println!("gguf: {} loaded in {:.2?}", lab.name(), t0.elapsed());
+        let n = test.len().min(gguf_test);
+        let t0 = Instant::now();
+        let mut labels = Vec::new();
+        for (i, e) in test[..n].iter().enumerate() {
+            labels.push(lab.label_blocking(&e.text)?.labels);
+            if (i + 1) % 10 == 0 {
+                eprintln!("gguf: {}/{n} answers, {:.1?}", i + 1, t0.elapsed());
+            }
+        }
+        let ms = t0.elapsed().as_secs_f64() * 1e3 / n as f64;
+        let pred = masks(&ontology, &labels)?;
+        table.push(Row {
+            name: format!("gguf ({})", lab.name()),
+            f: f1_scores(&test_y[..n], &pred),
+            per_label: per_label(&ontology, &test_y[..n], &pred),
+            ms,
+            n,
+        });
     }
 
     println!("\n| labeler | micro-F1 | macro-F1 | ms/answer | test answers |");
     println!("|---|---|---|---|---|");
-    for (name, f, ms, n) in &table {
+    for r in &table {
+        let ms = if r.ms.is_nan() {
+            "-".to_string()
+        } else {
+            format!("{:.1}", r.ms)
+        };
         println!(
-            "| {name} | {:.3} | {:.3} | {ms:.1} | {n} |",
-            f.micro, f.macro_
+            "| {} | {:.3} | {:.3} | {ms} | {} |",
+            r.name, r.f.micro, r.f.macro_, r.n
         );
     }
+    println!("\nper-label F1 (test split):\n");
+    let mut head = "| label | positives |".to_string();
+    for r in &table {
+        head.push_str(&format!(" {} |", r.name.split(' ').next().unwrap_or("")));
+    }
+    println!("{head}");
+    println!("|---|---|{}", "---|".repeat(table.len()));
+    for (k, l) in ontology.labels().iter().enumerate() {
+        let pos = test_y.iter().filter(|r| r[k]).count();
+        let mut line = format!("| {} | {pos} |", l.id);
+        for r in &table {
+            line.push_str(&format!(" {:.3} |", r.per_label[k]));
+        }
+        println!("{line}");
+    }
     println!("(macro-F1: a label with no true and no predicted positive scores F1 = 1)");
-    println!(
-        "openai-compatible labeler: not evaluated (no real server here; tested against a fake one)"
-    );
+    if let Some(p) = arg_value(&args, "--json") {
+        let v: Vec<serde_json::Value> = table
+            .iter()
+            .map(|r| {
+                serde_json::json!({
+                    "labeler": r.name, "micro_f1": r.f.micro, "macro_f1": r.f.macro_,
+                    "ms_per_answer": if r.ms.is_nan() { None } else { Some(r.ms) }, "answers": r.n,
+                    "per_label": ontology.ids().zip(&r.per_label).map(|(id, f)| (id.to_string(), *f)).collect::<std::collections::BTreeMap<_, _>>(),
+                })
+            })
+            .collect();
+        std::fs::write(p, serde_json::to_string_pretty(&v).unwrap())?;
+    }
     Ok(())
 }

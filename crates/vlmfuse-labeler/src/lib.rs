@@ -3,29 +3,39 @@
 //! The fusion engine only sees binary reports per label, so everything a VLM says must first be
 //! turned into a label set. Three backends trade accuracy for cost and independence:
 //!
-//! * [`EmbeddingLabeler`] (the offline default): sentence embeddings (all-MiniLM-L6-v2) of each
-//!   clause against paraphrase prototypes per label, with explicit negation handling, because
-//!   embeddings alone cannot tell "brake" from "no need to brake".
-//! * [`GgufLabeler`]: a small in-process base LLM (gemma-3-270m) scored with yes/no likelihoods,
-//!   for when no embedding prototypes are written for a custom ontology.
-//! * [`OpenAiLabeler`]: any OpenAI-compatible chat API, strict JSON validated against the ontology.
+//! * [`EmbeddingLabeler`] (the offline default): the annotation guidelines' rules
+//!   (`tests/data/labeler/GUIDELINES.md`: negation, hedge and agent scopes, lexical label rules)
+//!   plus sentence embeddings (all-MiniLM-L6-v2) for the paraphrases the rules do not list, all
+//!   clauses of a round in one encoder pass.
+//! * [`GgufLabeler`]: the paper's LLM labelling step in process: an instruct LLM from a GGUF file
+//!   (Llama 3.x, Qwen2/3, Gemma 3) under constrained decoding, so that its answer is always a
+//!   valid list of ontology ids.
+//! * [`OpenAiLabeler`]: any OpenAI-compatible chat API with the same prompt, its answer validated
+//!   against the ontology.
+//!
+//! Every output carries [`Evidence`]: which clause turned a label on (or was discounted as
+//! negated or hedged), so that users can see why a label was chosen.
 
 pub mod assets;
+mod candle_encoder;
 mod embedding;
 mod encoder;
 mod encoder_onnx;
 mod error;
 mod gguf;
-mod negation;
+pub mod llm;
 mod openai;
+pub mod rules;
 mod sp_tokenizer;
+pub mod text;
+pub mod tiny_gguf;
 
-pub use embedding::{ClauseSims, EmbeddingConfig, EmbeddingLabeler};
+pub use candle_encoder::CandleEncoder;
+pub use embedding::{EmbeddingConfig, EmbeddingLabeler, ItemMatch, Reading};
 pub use encoder::SentenceEncoder;
 pub use encoder_onnx::{OnnxEncoderConfig, OnnxSentenceEncoder, ENCODER_MODEL_CANDIDATES};
 pub use error::{LabelerError, LabelerErrorKind};
-pub use gguf::{GgufConfig, GgufLabeler};
-pub use negation::{is_negated, split_clauses};
+pub use gguf::{Generation, GgufConfig, GgufLabeler, TemplateSource};
 pub use openai::{OpenAiConfig, OpenAiLabeler};
 pub use sp_tokenizer::SpTokenizer;
 pub use vlmfuse_core::{BackendPool, PoolConfig};
@@ -42,6 +52,38 @@ pub struct LabelScore {
     pub score: f32,
 }
 
+/// What produced a piece of evidence.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum EvidenceSource {
+    /// A lexical rule of the annotation guidelines (e.g. "slow down" is braking).
+    Rule,
+    /// Sentence-embedding similarity to a paraphrase of the label.
+    Embedding,
+    /// An LLM chose the label reading the whole answer.
+    Llm,
+}
+
+/// Why a label is on, or why a mention of it did not count.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Evidence {
+    /// Label id.
+    pub label: String,
+    /// The clause of the answer the evidence comes from; empty for LLM labelers, which read the
+    /// whole answer.
+    pub clause: String,
+    /// Backend-specific strength (rule: 1; embedding: cosine; LLM: the model's probability).
+    pub score: f32,
+    /// The clause negates the label ("no need to brake").
+    pub negated: bool,
+    /// The clause hedges it ("be prepared to stop", "brake if ...").
+    pub hedged: bool,
+    pub source: EvidenceSource,
+    /// Whether this evidence turned the label on; negated or hedged mentions are listed too, with
+    /// `accepted: false`, so a user can see that they were read and discounted.
+    pub accepted: bool,
+}
+
 /// Result of labelling one text.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct LabelerOutput {
@@ -49,6 +91,9 @@ pub struct LabelerOutput {
     pub labels: Vec<String>,
     /// One score per ontology label, in ontology order, so callers can re-threshold.
     pub scores: Vec<LabelScore>,
+    /// Evidence for every label that is on, and for discounted mentions.
+    #[serde(default)]
+    pub evidence: Vec<Evidence>,
 }
 
 impl LabelerOutput {
@@ -70,14 +115,11 @@ impl LabelerOutput {
                 score: s,
             })
             .collect();
-        Self { labels, scores }
-    }
-
-    /// Builds an output from ontology-ordered scores, a label being on when its score reaches its
-    /// threshold (the rule the embedding and GGUF labelers share).
-    pub(crate) fn thresholded(ontology: &Ontology, scores: &[f32], thresholds: &[f32]) -> Self {
-        let on: Vec<bool> = scores.iter().zip(thresholds).map(|(s, t)| s >= t).collect();
-        Self::from_decisions(ontology, scores, &on)
+        Self {
+            labels,
+            scores,
+            evidence: Vec::new(),
+        }
     }
 
     pub fn score_of(&self, id: &str) -> Option<f32> {
@@ -95,6 +137,22 @@ pub trait Labeler: Send + Sync {
     /// Stable name for logs and metrics.
     fn name(&self) -> &str;
     fn label<'a>(&'a self, text: &'a str) -> BoxFuture<'a, Result<LabelerOutput, LabelerError>>;
+
+    /// Labels several texts (the answers of one round). The embedding labeler overrides this to
+    /// encode every clause of every text in one pass; the default labels them one after another.
+    /// Outputs are in input order; the first error fails the batch.
+    fn label_batch<'a>(
+        &'a self,
+        texts: &'a [&'a str],
+    ) -> BoxFuture<'a, Result<Vec<LabelerOutput>, LabelerError>> {
+        Box::pin(async move {
+            let mut out = Vec::with_capacity(texts.len());
+            for t in texts {
+                out.push(self.label(t).await?);
+            }
+            Ok(out)
+        })
+    }
 }
 
 /// A local labeler whose model work blocks the calling thread (the embedding and GGUF
@@ -104,6 +162,13 @@ pub trait BlockingLabeler: Send + Sync + 'static {
     fn name(&self) -> &str;
     /// Labels a text on the calling thread.
     fn label_blocking(&self, text: &str) -> Result<LabelerOutput, LabelerError>;
+
+    /// Labels several texts on the calling thread, outputs in input order. The embedding
+    /// labeler overrides it to run every clause of every text in one encoder pass; the default
+    /// labels them one after another.
+    fn label_batch_blocking(&self, texts: &[&str]) -> Result<Vec<LabelerOutput>, LabelerError> {
+        texts.iter().map(|t| self.label_blocking(t)).collect()
+    }
 }
 
 impl<B: BlockingLabeler + ?Sized> Labeler for BackendPool<B> {
@@ -114,5 +179,21 @@ impl<B: BlockingLabeler + ?Sized> Labeler for BackendPool<B> {
     fn label<'a>(&'a self, text: &'a str) -> BoxFuture<'a, Result<LabelerOutput, LabelerError>> {
         let text = text.to_string();
         Box::pin(async move { self.call(move |b, _| b.label_blocking(&text)).await? })
+    }
+
+    /// One pool call for the whole round, so that the backend's batching (one encoder pass)
+    /// survives the adapter and the round waits in the queue once, not once per answer.
+    fn label_batch<'a>(
+        &'a self,
+        texts: &'a [&'a str],
+    ) -> BoxFuture<'a, Result<Vec<LabelerOutput>, LabelerError>> {
+        let texts: Vec<String> = texts.iter().map(|t| t.to_string()).collect();
+        Box::pin(async move {
+            self.call(move |b, _| {
+                let refs: Vec<&str> = texts.iter().map(String::as_str).collect();
+                b.label_batch_blocking(&refs)
+            })
+            .await?
+        })
     }
 }

@@ -2,12 +2,14 @@
 //!
 //! An LLM's answer is untrusted: it may invent labels or wrap JSON in prose. The answer is parsed
 //! strictly against the ontology; a bad answer gets one corrective retry, then the labeler fails,
-//! so that the engine counts this reporter as absent rather than fusing garbage.
+//! so that the engine counts this reporter as absent rather than fusing garbage. The prompt and the
+//! validator are the ones the in-process GGUF labeler uses (`llm::prompt`).
 //!
 //! The transport (retries on 5xx, 429, connection errors, with backoff) is the shared
 //! [`ChatClient`], the same one the remote reporter uses.
 
-use crate::{Labeler, LabelerError, LabelerOutput, Ontology};
+use crate::llm::prompt::{parse_labels, system_prompt, user_prompt};
+use crate::{Evidence, EvidenceSource, Labeler, LabelerError, LabelerOutput, Ontology};
 use futures::future::BoxFuture;
 use serde_json::{json, Value};
 use std::sync::Arc;
@@ -72,25 +74,6 @@ impl OpenAiLabeler {
         })
     }
 
-    fn system_prompt(&self) -> String {
-        let mut s = String::from(
-            "You label driving advice. Read the text written by a vision-language model about a \
-             dashcam clip (scene description, recommended manoeuvres, rationale) and list every \
-             label from the list below that the text mentions as present in the scene or \
-             recommends as an action. A label that the text explicitly negates (\"no need to \
-             brake\", \"there is no traffic light\") is NOT present. Hedged recommendations \
-             (\"might need to brake\") count as present.\n\nLabels (id: meaning):\n",
-        );
-        for l in self.ontology.labels() {
-            s.push_str(&format!("- {}: {}\n", l.id, l.gloss()));
-        }
-        s.push_str(
-            "\nAnswer with a JSON object only, no prose: {\"labels\": [ids]}. Use only the ids \
-             above. Use an empty list if none applies.",
-        );
-        s
-    }
-
     async fn call(&self, messages: &[Value]) -> Result<String, Attempt> {
         let mut body = json!({
             "model": self.cfg.model,
@@ -111,8 +94,8 @@ impl OpenAiLabeler {
 
     async fn label_async(&self, text: &str) -> Result<LabelerOutput, LabelerError> {
         let mut messages = vec![
-            json!({"role": "system", "content": self.system_prompt()}),
-            json!({"role": "user", "content": text}),
+            json!({"role": "system", "content": system_prompt(&self.ontology)}),
+            json!({"role": "user", "content": user_prompt(text)}),
         ];
         let mut last = String::new();
         for attempt in 1..=self.cfg.max_attempts {
@@ -120,7 +103,21 @@ impl OpenAiLabeler {
                 Ok(content) => match parse_labels(&self.ontology, &content) {
                     Ok(on) => {
                         let scores: Vec<f32> = on.iter().map(|&b| f32::from(u8::from(b))).collect();
-                        return Ok(LabelerOutput::from_decisions(&self.ontology, &scores, &on));
+                        let mut out = LabelerOutput::from_decisions(&self.ontology, &scores, &on);
+                        out.evidence = out
+                            .labels
+                            .iter()
+                            .map(|id| Evidence {
+                                label: id.clone(),
+                                clause: String::new(),
+                                score: 1.0,
+                                negated: false,
+                                hedged: false,
+                                source: EvidenceSource::Llm,
+                                accepted: true,
+                            })
+                            .collect();
+                        return Ok(out);
                     }
                     Err(reason) => {
                         tracing::warn!(labeler = %self.name, attempt, %reason, "bad labeler answer");
@@ -154,32 +151,6 @@ enum Attempt {
     Fatal(LabelerError),
 }
 
-/// Strictly parses `{"labels": [...]}` (optionally inside a ```json fence, which many models add
-/// even in JSON mode). Every entry must resolve to an ontology label; duplicates are harmless.
-fn parse_labels(ontology: &Ontology, content: &str) -> Result<Vec<bool>, String> {
-    let mut s = content.trim();
-    if let Some(rest) = s.strip_prefix("```") {
-        let rest = rest.trim_start_matches("json").trim_start_matches("JSON");
-        s = rest.trim().trim_end_matches("```").trim();
-    }
-    let v: Value = serde_json::from_str(s).map_err(|e| format!("not valid JSON: {e}"))?;
-    let arr = v
-        .get("labels")
-        .and_then(Value::as_array)
-        .ok_or_else(|| "missing array field \"labels\"".to_string())?;
-    let mut on = vec![false; ontology.len()];
-    for item in arr {
-        let name = item
-            .as_str()
-            .ok_or_else(|| format!("label {item} is not a string"))?;
-        let k = ontology
-            .resolve(name)
-            .ok_or_else(|| format!("unknown label {name:?}"))?;
-        on[k] = true;
-    }
-    Ok(on)
-}
-
 impl Labeler for OpenAiLabeler {
     fn name(&self) -> &str {
         &self.name
@@ -187,26 +158,5 @@ impl Labeler for OpenAiLabeler {
 
     fn label<'a>(&'a self, text: &'a str) -> BoxFuture<'a, Result<LabelerOutput, LabelerError>> {
         Box::pin(self.label_async(text))
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn parses_fenced_and_names() {
-        let o = Ontology::default_driving();
-        let on =
-            parse_labels(&o, "```json\n{\"labels\": [\"brake\", \"Turn Left\"]}\n```").unwrap();
-        assert!(on[0] && on[2]);
-        assert_eq!(on.iter().filter(|&&b| b).count(), 2);
-        assert!(parse_labels(&o, "{\"labels\": [\"fly\"]}").is_err());
-        assert!(parse_labels(&o, "brake, stop").is_err());
-        assert!(parse_labels(&o, "{\"labels\": \"brake\"}").is_err());
-        assert!(parse_labels(&o, "{\"labels\": []}")
-            .unwrap()
-            .iter()
-            .all(|b| !b));
     }
 }

@@ -5,8 +5,9 @@
 //! model never saw in training), this re-implements SentencePiece's BPE encoding: start from
 //! characters, repeatedly merge the adjacent pair whose concatenation is a vocabulary piece with
 //! the highest score (leftmost on ties), and fall back to `<0xXX>` byte pieces for characters not
-//! in the vocabulary. Text is pre-split at spaces (SentencePiece's `split_by_whitespace`), which
-//! also keeps encoding fast.
+//! in the vocabulary. The whole text is one sequence (no split at spaces), as llama.cpp and
+//! transformers encode Gemma; `tests/gguf.rs` checks the ids against transformers on the real
+//! 262k vocabulary.
 
 use crate::LabelerError;
 use candle_core::quantized::gguf_file::{Content, Value};
@@ -127,23 +128,12 @@ impl SpTokenizer {
         if self.add_space_prefix && !norm.starts_with(SPACE) {
             norm.insert(0, SPACE);
         }
+        // The whole text is one BPE sequence, as in llama.cpp and transformers: Gemma's
+        // vocabulary has pieces that span a space (`",▁"`), which splitting at spaces first
+        // would never produce.
         let mut out = Vec::new();
-        // Segments: a run of spaces followed by non-space characters.
-        let mut seg = String::new();
-        let mut in_word = false;
-        for c in norm.chars() {
-            if c == SPACE && in_word {
-                self.encode_segment(&seg, &mut out);
-                seg.clear();
-                in_word = false;
-            }
-            if c != SPACE {
-                in_word = true;
-            }
-            seg.push(c);
-        }
-        if !seg.is_empty() {
-            self.encode_segment(&seg, &mut out);
+        if !norm.is_empty() {
+            self.encode_segment(&norm, &mut out);
         }
         out
     }

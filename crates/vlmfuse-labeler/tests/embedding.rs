@@ -1,12 +1,12 @@
-//! The embedding labeler with the real all-MiniLM-L6-v2: negation, custom ontologies and a floor
-//! on micro-F1 over the held-out test split.
+//! The embedding labeler (guideline rules + all-MiniLM-L6-v2) with the real model: the issue's
+//! examples, evidence, batching, custom ontologies, and floors on the held-out test split.
 
 mod common;
 
-use std::sync::{Arc, OnceLock};
+use std::sync::{Arc, Mutex, OnceLock};
 use vlmfuse_labeler::{
-    BackendPool, BlockingLabeler, EmbeddingConfig, EmbeddingLabeler, Label, Labeler, Ontology,
-    PoolConfig,
+    BackendPool, BlockingLabeler, EmbeddingConfig, EmbeddingLabeler, EvidenceSource, Label,
+    Labeler, LabelerError, Ontology, PoolConfig, SentenceEncoder,
 };
 use vlmfuse_testkit::labeler_eval::{default_dataset_path, f1_scores, load_dataset, to_mask};
 
@@ -29,69 +29,89 @@ fn labels(text: &str) -> Vec<String> {
     labeler().unwrap().label_blocking(text).unwrap().labels
 }
 
+/// The errors the issue reports from the previous matcher, and its examples.
 #[test]
-fn negated_mentions_do_not_fire() {
+fn issue_examples_are_read_as_the_guidelines_say() {
     let Some(_) = labeler() else { return };
-    // Each case: (text, label that must be on, label that must be off).
-    let cases = [
+    let cases: &[(&str, &[&str])] = &[
         (
-            "A traffic light is visible ahead.",
-            Some("traffic_light_ahead"),
-            None,
+            "Turn right at the roundabout (third exit).",
+            &["turn_right", "junction_ahead"],
+        ),
+        (
+            "Road is dry, weather not a factor. Brake for the queue ahead.",
+            &["brake"],
+        ),
+        ("Stop at the red light.", &["stop", "traffic_light_ahead"]),
+        (
+            "Slow down, roundabout ahead, be ready to stop.",
+            &["brake", "junction_ahead"],
         ),
         (
             "There is no traffic light, but an intersection is ahead.",
-            Some("junction_ahead"),
-            Some("traffic_light_ahead"),
+            &["junction_ahead"],
         ),
-        (
-            "There is no traffic light at this intersection.",
-            None,
-            Some("traffic_light_ahead"),
-        ),
-        (
-            "Pedestrians are walking across the zebra crossing.",
-            Some("pedestrian_crossing_ahead"),
-            None,
-        ),
-        (
-            "No pedestrians are visible. Keep going at the current speed.",
-            Some("drive_as_normal"),
-            Some("pedestrian_crossing_ahead"),
-        ),
-        ("Apply the brakes now.", Some("brake"), None),
         (
             "There is no need to brake; continue driving normally.",
-            Some("drive_as_normal"),
-            Some("brake"),
+            &["drive_as_normal"],
         ),
-        ("You don't have to stop here.", None, Some("stop")),
+        ("You don't have to stop here.", &[]),
         (
             "Don't forget to check the blind spot.",
-            Some("check_blind_spot"),
-            None,
+            &["check_blind_spot"],
         ),
         (
             "Avoid following the truck too closely.",
-            Some("maintain_safe_distance"),
-            None,
+            &["maintain_safe_distance"],
         ),
+        (
+            "Pedestrians are crossing; stop and let them cross.",
+            &["stop"],
+        ),
+        (
+            "Give way to pedestrians at the zebra.",
+            &["pedestrian_crossing_ahead", "yield_to_traffic"],
+        ),
+        ("Keep left and continue.", &["drive_as_normal"]),
     ];
+    let onto = Ontology::default_driving();
     let mut failures = Vec::new();
-    for (text, on, off) in cases {
+    for (text, want) in cases {
+        let mut want: Vec<String> = want.iter().map(|s| s.to_string()).collect();
+        want.sort_by_key(|id| onto.index_of(id));
         let got = labels(text);
-        if let Some(on) = on {
-            if !got.iter().any(|l| l == on) {
-                failures.push(format!("{text:?}: expected {on}, got {got:?}"));
-            }
-        }
-        if let Some(off) = off {
-            if got.iter().any(|l| l == off) {
-                failures.push(format!("{text:?}: {off} must be off, got {got:?}"));
-            }
+        if got != want {
+            failures.push(format!("{text:?}: got {got:?}, want {want:?}"));
         }
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+#[test]
+fn evidence_names_the_clause_and_the_discounted_mentions() {
+    let Some(l) = labeler() else { return };
+    let out = l
+        .label_blocking("No need to stop, just slow down. Be ready to turn left at the junction.")
+        .unwrap();
+    assert_eq!(out.labels, vec!["brake", "junction_ahead"]);
+    let ev = |id: &str| out.evidence.iter().find(|e| e.label == id).cloned();
+    let brake = ev("brake").expect("evidence for brake");
+    assert!(
+        brake.accepted && brake.source == EvidenceSource::Rule,
+        "{brake:?}"
+    );
+    assert_eq!(brake.clause, "No need to stop, just slow down.");
+    let stop = ev("stop").expect("the negated stop is shown");
+    assert!(!stop.accepted && stop.negated && !stop.hedged, "{stop:?}");
+    let left = ev("turn_left").expect("the hedged turn is shown");
+    assert!(!left.accepted && left.hedged, "{left:?}");
+    // Every label that is on has accepted evidence.
+    for id in &out.labels {
+        assert!(
+            out.evidence.iter().any(|e| &e.label == id && e.accepted),
+            "{id}: {out:?}"
+        );
+    }
 }
 
 #[test]
@@ -102,9 +122,31 @@ fn outputs_cover_the_ontology_in_order() {
         .unwrap();
     let ids: Vec<&str> = out.scores.iter().map(|s| s.id.as_str()).collect();
     assert_eq!(ids, Ontology::default_driving().ids().collect::<Vec<_>>());
-    assert!(out.labels.contains(&"turn_left".to_string()), "{out:?}");
-    assert!(!out.labels.contains(&"turn_right".to_string()), "{out:?}");
+    assert_eq!(
+        out.labels,
+        vec!["turn_left", "junction_ahead", "yield_to_traffic"]
+    );
     assert!(l.label_blocking("").unwrap().labels.is_empty());
+    assert!(l.label_blocking("   \n\n").unwrap().labels.is_empty());
+}
+
+/// Counts encoder calls, to check that a round costs one.
+struct Counting {
+    inner: Arc<dyn SentenceEncoder>,
+    calls: Mutex<Vec<usize>>,
+}
+
+impl SentenceEncoder for Counting {
+    fn engine(&self) -> &str {
+        "counting"
+    }
+    fn dim(&self) -> usize {
+        self.inner.dim()
+    }
+    fn encode(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>, LabelerError> {
+        self.calls.lock().unwrap().push(texts.len());
+        self.inner.encode(texts)
+    }
 }
 
 #[tokio::test]
@@ -117,6 +159,50 @@ async fn async_trait_path_matches_blocking() {
         a.labels.contains(&"maintain_safe_distance".to_string()),
         "{a:?}"
     );
+}
+
+#[tokio::test]
+async fn a_round_is_one_encoder_call_and_matches_single_labels() {
+    let Some(a) = common::assets() else { return };
+    let enc = Arc::new(Counting {
+        inner: Arc::new(vlmfuse_labeler::CandleEncoder::load(&a.minilm_dir).unwrap()),
+        calls: Mutex::new(Vec::new()),
+    });
+    let l = Arc::new(
+        EmbeddingLabeler::with_encoder(
+            Ontology::default_driving(),
+            EmbeddingConfig::new(&a.minilm_dir),
+            enc.clone(),
+        )
+        .unwrap(),
+    );
+    enc.calls.lock().unwrap().clear();
+    let texts = [
+        "1. Scene: a busy road.\n2. Manoeuvre: hop over into the next lane and get up to speed.\n3. Rationale: our lane ends.",
+        "Keep a safe gap to the bus and carry on.",
+        "Red light ahead. Stop at the line.",
+    ];
+    let batch = l.label_batch_blocking(&texts).unwrap();
+    assert_eq!(
+        enc.calls.lock().unwrap().len(),
+        1,
+        "one encoder pass per round"
+    );
+    for (t, b) in texts.iter().zip(&batch) {
+        assert_eq!(&l.label_blocking(t).unwrap(), b);
+    }
+    // Through the service's adapter: still one encoder pass for the round.
+    let pool = pooled(&l);
+    enc.calls.lock().unwrap().clear();
+    let via_trait = Labeler::label_batch(&pool, &texts).await.unwrap();
+    assert_eq!(via_trait, batch);
+    assert_eq!(
+        enc.calls.lock().unwrap().len(),
+        1,
+        "one encoder pass per round through the pool"
+    );
+    assert_eq!(Labeler::label(&pool, texts[2]).await.unwrap(), batch[2]);
+    assert_eq!(batch[2].labels, vec!["stop", "traffic_light_ahead"]);
 }
 
 #[test]
@@ -152,37 +238,52 @@ fn custom_ontology_works_from_names_and_descriptions() {
         )
         .unwrap();
     assert_eq!(out.labels, vec!["roadworks"], "{out:?}");
+    assert!(out
+        .evidence
+        .iter()
+        .all(|e| e.source == EvidenceSource::Embedding));
     // Unknown label ids in the config are rejected rather than ignored.
     let mut cfg = EmbeddingConfig::new(&a.minilm_dir);
     cfg.label_thresholds.insert("nope".into(), 0.5);
     let onto = Ontology::new(vec![Label::new("x", "x", None)]).unwrap();
+    assert!(EmbeddingLabeler::load(onto.clone(), cfg).is_err());
+    let mut cfg = EmbeddingConfig::new(&a.minilm_dir);
+    cfg.threshold = 1.5;
     assert!(EmbeddingLabeler::load(onto, cfg).is_err());
 }
 
-/// Floor on held-out F1. Measured micro 0.857 / macro 0.837 on the 210 test answers; the floor
-/// leaves a margin for numeric differences between builds.
+/// Floors on the held-out test split. Measured micro-F1 and macro-F1 are in README (release
+/// build, `examples/labeler_eval.rs`); the floors are the issue's targets.
 #[test]
-fn test_split_micro_f1_floor() {
+fn test_split_meets_the_targets() {
     let Some(l) = labeler() else { return };
     let onto = Ontology::default_driving();
     let data = load_dataset(&default_dataset_path()).unwrap();
     let test: Vec<_> = data.iter().filter(|e| e.split == "test").collect();
-    assert!(test.len() >= 150);
+    assert!(test.len() >= 250);
     let truth: Vec<_> = test
         .iter()
         .map(|e| to_mask(&onto, &e.labels).unwrap())
         .collect();
-    let pred: Vec<_> = test
-        .iter()
-        .map(|e| to_mask(&onto, &l.label_blocking(&e.text).unwrap().labels).unwrap())
-        .collect();
+    let texts: Vec<&str> = test.iter().map(|e| e.text.as_str()).collect();
+    let mut pred = Vec::new();
+    for chunk in texts.chunks(3) {
+        for o in l.label_batch_blocking(chunk).unwrap() {
+            pred.push(to_mask(&onto, &o.labels).unwrap());
+        }
+    }
     let f = f1_scores(&truth, &pred);
     eprintln!(
         "embedding labeler, test split: micro-F1 {:.3}, macro-F1 {:.3}",
         f.micro, f.macro_
     );
-    assert!(f.micro >= 0.80, "micro-F1 {:.3} below floor", f.micro);
-    assert!(f.macro_ >= 0.78, "macro-F1 {:.3} below floor", f.macro_);
+    assert!(f.micro >= 0.85, "micro-F1 {:.3} below 0.85", f.micro);
+    assert!(f.macro_ >= 0.80, "macro-F1 {:.3} below 0.80", f.macro_);
+    for (k, lab) in onto.labels().iter().enumerate() {
+        let col = |m: &[Vec<bool>]| m.iter().map(|r| vec![r[k]]).collect::<Vec<_>>();
+        let fk = f1_scores(&col(&truth), &col(&pred)).micro;
+        assert!(fk >= 0.70, "{}: F1 {fk:.3} below 0.70", lab.id);
+    }
 }
 
 /// The labeler as the service runs it: behind its worker thread.

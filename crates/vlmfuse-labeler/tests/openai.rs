@@ -84,9 +84,10 @@ async fn good_answer_is_accepted_in_one_call() {
     assert_eq!(reqs[0]["model"], "fake-model");
     let system = reqs[0]["messages"][0]["content"].as_str().unwrap();
     assert!(system.contains("adjust_speed_due_to_weather"));
+    // The answer goes in verbatim, between the markers of the shared prompt.
     assert_eq!(
         reqs[0]["messages"][1]["content"],
-        "The light is red, slow down."
+        vlmfuse_labeler::llm::prompt::user_prompt("The light is red, slow down.")
     );
 }
 

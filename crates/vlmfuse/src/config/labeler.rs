@@ -8,11 +8,13 @@ use std::path::PathBuf;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "lowercase")]
 pub enum LabelerConfig {
-    /// The offline default: all-MiniLM-L6-v2 sentence similarity with negation handling.
+    /// The offline default: the annotation guidelines' rules plus all-MiniLM-L6-v2 paraphrase
+    /// matching for what the rules do not list.
     Embedding(EmbeddingLabelerConfig),
     /// Any OpenAI-compatible LLM asked for JSON restricted to the ontology.
     Openai(OpenAiLabelerConfig),
-    /// An in-process base LLM (GGUF) scored with yes/no likelihoods.
+    /// An in-process instruct LLM (GGUF: Llama 3.x, Qwen2/3, Gemma 3) whose decoding is
+    /// constrained to a valid list of ontology ids.
     Gguf(GgufLabelerConfig),
 }
 
@@ -28,7 +30,8 @@ pub struct EmbeddingLabelerConfig {
     /// The MiniLM directory; unset: `minilm` under the asset cache (scripts/fetch-assets.sh).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub model_dir: Option<PathBuf>,
-    /// Decision threshold; unset: the tuned default.
+    /// Cosine threshold for labels without a tuned one (labels the paper's ontology does not
+    /// have); unset: the default.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub threshold: Option<f32>,
 }
@@ -39,9 +42,14 @@ pub struct GgufLabelerConfig {
     /// The model file; unset: the fetched gemma-3-270m under the asset cache.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub model_path: Option<PathBuf>,
-    /// Decision threshold; unset: the tuned default.
+    /// A Jinja chat template that replaces the file's (for files with a broken or missing one);
+    /// unset: the file's, else the family's turn format. There is no threshold: the model writes
+    /// the label list itself.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub threshold: Option<f32>,
+    pub chat_template: Option<String>,
+    /// Tokens of an answer the model reads; longer answers keep their first ones. Unset: 512.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_answer_tokens: Option<usize>,
 }
 
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]

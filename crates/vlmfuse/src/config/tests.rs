@@ -91,10 +91,12 @@ fn the_labeler_section_is_a_tagged_enum() {
         cfg.labeler,
         LabelerConfig::Gguf(GgufLabelerConfig {
             model_path: Some("/m.gguf".into()),
-            threshold: None
+            ..Default::default()
         })
     );
     assert!(Config::from_toml("[labeler]\nkind = \"gguf\"\nbase_url = \"http://x\"").is_err());
+    // The GGUF labeler writes its label list: a threshold is a leftover, refused.
+    assert!(Config::from_toml("[labeler]\nkind = \"gguf\"\nthreshold = 0.5").is_err());
     assert!(Config::from_toml("[labeler]\nkind = \"nope\"").is_err());
 }
 

@@ -120,9 +120,11 @@ impl Pipeline {
                 }
                 LabelerConfig::Gguf(lc) => {
                     let path = lc.model_path.clone().unwrap_or(assets.gemma_gguf);
+                    // The GGUF labeler decodes a label list; it has no threshold.
                     let mut gc = vlmfuse_labeler::GgufConfig::new(path);
-                    if let Some(t) = lc.threshold {
-                        gc.threshold = t;
+                    gc.chat_template = lc.chat_template;
+                    if let Some(n) = lc.max_answer_tokens {
+                        gc.max_answer_tokens = n;
                     }
                     let l =
                         vlmfuse_labeler::GgufLabeler::load(ontology, gc).context("gguf labeler")?;
