@@ -19,7 +19,7 @@ mod media;
 mod reporter;
 mod server;
 
-pub use embedder::EmbedderConfig;
+pub use embedder::{EmbedderBackend, EmbedderConfig};
 pub use labeler::{EmbeddingLabelerConfig, GgufLabelerConfig, LabelerConfig, OpenAiLabelerConfig};
 pub use media::MediaConfig;
 pub use reporter::{ReporterBackend, ReporterEntry};

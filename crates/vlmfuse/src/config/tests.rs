@@ -139,3 +139,21 @@ fn the_commented_pipeline_examples_parse() {
     let bad = text.replace("name = \"vlaad\"", "name = \"nobody\"");
     assert!(Config::from_toml(&bad).is_err());
 }
+
+#[test]
+fn the_embedder_backend_is_chosen_in_the_file_and_typos_are_refused() {
+    let cfg = Config::from_toml(
+        "[embedder]\nweights = { path = \"/m/clip-onnx\" }\nbackend = \"onnx\"\nthreads = 2\n\
+         model_file = \"onnx/vision_model.onnx\"\n",
+    )
+    .unwrap();
+    let e = cfg.embedder.unwrap();
+    assert_eq!(e.backend, EmbedderBackend::Onnx);
+    assert_eq!(e.threads, Some(2));
+    assert_eq!(e.model_file.as_deref(), Some("onnx/vision_model.onnx"));
+    let cfg = Config::from_toml("[embedder]\nweights = { path = \"/m/clip\" }\n").unwrap();
+    assert_eq!(cfg.embedder.unwrap().backend, EmbedderBackend::Candle);
+    let err = Config::from_toml("[embedder]\nweights = { path = \"/m\" }\nbackend = \"tensorrt\"\n")
+        .unwrap_err();
+    assert!(format!("{err:#}").contains("backend"), "{err:#}");
+}

@@ -4,7 +4,7 @@
 //! that is simply not configured is named too, but only `/v1/infer` refuses (503) because of it:
 //! `/v1/fuse` does not need it.
 
-use crate::config::{Config, LabelerConfig, ReporterBackend};
+use crate::config::{Config, EmbedderBackend, LabelerConfig, ReporterBackend};
 use anyhow::{bail, Context};
 use std::sync::Arc;
 use std::time::Duration;
@@ -48,10 +48,38 @@ impl Pipeline {
         // Embedder.
         let embedder = cfg.embedder.clone().map(|e| {
             tokio::task::spawn_blocking(move || {
-                let device = vlmfuse_models::parse_device(&e.device)?;
-                let model = vlmfuse_models::ClipEmbedder::load(&e.weights, &device)
-                    .with_context(|| format!("{} ({})", e.weights.describe(), e.device))?;
-                let pool = Embedder::new(Arc::new(model), PoolConfig::default())
+                let model: Arc<dyn vlmfuse_models::ContextEmbedder> = match e.backend {
+                    EmbedderBackend::Candle => {
+                        let device = vlmfuse_models::parse_device(&e.device)?;
+                        Arc::new(
+                            vlmfuse_models::ClipEmbedder::load(&e.weights, &device).with_context(
+                                || format!("{} ({})", e.weights.describe(), e.device),
+                            )?,
+                        )
+                    }
+                    EmbedderBackend::Onnx => {
+                        if e.device != "cpu" {
+                            anyhow::bail!(
+                                "backend = \"onnx\" runs on the CPU; device {:?} needs backend = \"candle\"",
+                                e.device
+                            );
+                        }
+                        let oc = vlmfuse_models::OnnxClipConfig {
+                            weights: e.weights.clone(),
+                            model_file: e.model_file.clone(),
+                            session: vlmfuse_ort::SessionOptions {
+                                threads: e.threads,
+                                library: e.onnx_library.clone(),
+                            },
+                        };
+                        Arc::new(
+                            vlmfuse_models::OnnxClipEmbedder::load(&oc).with_context(|| {
+                                format!("{} (onnx)", e.weights.describe())
+                            })?,
+                        )
+                    }
+                };
+                let pool = Embedder::new(model, PoolConfig::default())
                     .context("embedder worker")?;
                 anyhow::Ok(Arc::new(pool))
             })

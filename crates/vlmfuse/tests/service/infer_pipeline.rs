@@ -202,3 +202,41 @@ async fn a_reporter_that_fails_to_load_is_listed_by_readyz_and_left_out_of_round
         "{v}"
     );
 }
+
+/// `[embedder] backend = "onnx"`: the clip's context comes from ONNX Runtime (the tiny CLIP
+/// vision export under tests/data/onnx), and /v1/infer fuses it like the candle embedder's.
+#[tokio::test(flavor = "multi_thread")]
+async fn the_onnx_embedder_serves_infer() {
+    let assets = vlmfuse_testkit::assets::ensure_assets().expect("assets (libonnxruntime)");
+    let tmp = tempfile::tempdir().unwrap();
+    let fake = FakeOpenAi::start();
+    let model = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/onnx/tiny-clip");
+    let mut cfg = String::from("reporters = [\"videollama2\", \"videollava\"]\n\n[media]\nframes = 4\n\n");
+    cfg += &format!(
+        "[embedder]\nweights = {{ path = {model:?} }}\nbackend = \"onnx\"\nthreads = 1\n\
+         onnx_library = {:?}\n\n",
+        assets.onnxruntime
+    );
+    cfg += &fake.reporter_toml("videollama2", "video_url");
+    cfg += &fake.reporter_toml("videollava", "frames");
+    cfg += &fake.labeler_toml();
+    let srv = TestApp::from_toml(tmp.path(), &cfg).await;
+    let ready = srv.get("/readyz").await.json();
+    assert_eq!(ready["infer"]["ready"], true, "{ready}");
+    let clip = h264_clip(tmp.path(), "drive.mp4", "testsrc2", 2.0);
+    let r = srv.post_clip(&clip).await;
+    let v = r.json();
+    assert_eq!(r.status, 200, "{v}");
+    assert_eq!(v["coalition"], json!(["videollama2", "videollava"]), "{v}");
+    assert!(v["timings_ms"]["embed"].as_f64().is_some(), "{v}");
+    let state = srv.get("/v1/state").await.json();
+    assert!(state["dim"].as_u64().unwrap() > 0, "{state}");
+
+    // A GPU device is refused for the CPU-only backend, and /readyz says why.
+    let tmp2 = tempfile::tempdir().unwrap();
+    let bad = cfg.replace("backend = \"onnx\"", "backend = \"onnx\"\ndevice = \"cuda\"");
+    let srv2 = TestApp::from_toml(tmp2.path(), &bad).await;
+    let ready = srv2.get("/readyz").await.json();
+    assert_eq!(ready["infer"]["ready"], false, "{ready}");
+    assert!(ready.to_string().contains("runs on the CPU"), "{ready}");
+}
