@@ -2,10 +2,18 @@
 //! per-label F1.
 //!
 //! ```text
-//! cargo run --release -p vlmfuse-labeler --example labeler_eval -- [--tune]
-//!     [--only embedding,rules,remote,gguf] [--gguf PATH] [--gguf-test N] [--json FILE]
+//! CARGO_TARGET_DIR=/work/target-release cargo run --release -p vlmfuse-labeler \
+//!     --example labeler_eval -- [--tune] [--only embedding,onnx,rules,remote,gguf]
+//!     [--gguf PATH] [--gguf-test N] [--threads N] [--json FILE]
 //! ```
-//! * `embedding`: the served default (rules + MiniLM paraphrases);
+//! Answers are labelled in rounds of five (`ROUND_ANSWERS`), one `label_batch` call per round as
+//! `/v1/infer` makes it, and the label stage's time is reported per round (median and p95, after
+//! a warm-up), each engine measured in the same run.
+//!
+//! * `embedding`: the served default (rules + MiniLM paraphrases, ONNX Runtime encoder), built
+//!   by `vlmfuse_testkit::labeler_eval::eval_embedding_labeler`, which the service's test holds
+//!   the served labeler to;
+//! * `candle`: the same matcher on the candle encoder (`encoder = "candle"`);
 //! * `rules`: the rules alone (an ablation: what the embeddings add);
 //! * `remote`: the OpenAI-compatible labeler against a local fake server that answers with
 //!   the embedding labeler, so the number measures the remote client's prompt, transport and
@@ -23,7 +31,8 @@ use vlmfuse_labeler::{
 };
 use vlmfuse_testkit::assets::{ensure_assets, AssetsUnavailable};
 use vlmfuse_testkit::labeler_eval::{
-    default_dataset_path, f1_scores, load_dataset, to_mask, Example, F1,
+    default_dataset_path, eval_candle_labeler, eval_embedding_labeler, f1_scores, load_dataset,
+    per_label_f1, to_mask, Example, F1, ROUND_ANSWERS,
 };
 
 fn arg_value(args: &[String], name: &str) -> Option<String> {
@@ -36,17 +45,36 @@ struct Row {
     name: String,
     f: F1,
     per_label: Vec<f64>,
-    ms: f64,
+    /// Label stage per round of `ROUND_ANSWERS` answers: median and p95, ms (None: not timed).
+    round_ms: Option<(f64, f64)>,
     n: usize,
 }
 
-fn per_label(ontology: &Ontology, truth: &[Vec<bool>], pred: &[Vec<bool>]) -> Vec<f64> {
-    (0..ontology.len())
-        .map(|k| {
-            let col = |m: &[Vec<bool>]| m.iter().map(|r| vec![r[k]]).collect::<Vec<_>>();
-            f1_scores(&col(truth), &col(pred)).micro
-        })
-        .collect()
+fn pct(v: &mut [f64], p: f64) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[((v.len() - 1) as f64 * p).round() as usize]
+}
+
+/// Median and p95, ms.
+type MedianP95 = (f64, f64);
+
+/// Labels the split in rounds, timing each round after a warm-up round; returns the labels and
+/// the median and p95 round time.
+fn label_timed(
+    l: &dyn BlockingLabeler,
+    texts: &[&str],
+) -> anyhow::Result<(Vec<Vec<String>>, MedianP95)> {
+    l.label_batch_blocking(&texts[..ROUND_ANSWERS.min(texts.len())])?;
+    let mut labels = Vec::with_capacity(texts.len());
+    let mut times = Vec::new();
+    for round in texts.chunks(ROUND_ANSWERS) {
+        let t0 = Instant::now();
+        let outs = l.label_batch_blocking(round)?;
+        times.push(t0.elapsed().as_secs_f64() * 1e3);
+        labels.extend(outs.into_iter().map(|o| o.labels));
+    }
+    let ms = (pct(&mut times, 0.5), pct(&mut times, 0.95));
+    Ok((labels, ms))
 }
 
 fn masks(o: &Ontology, outs: &[Vec<String>]) -> anyhow::Result<Vec<Vec<bool>>> {
@@ -113,6 +141,7 @@ fn main() -> anyhow::Result<()> {
         .unwrap_or_else(|| {
             vec![
                 "embedding".into(),
+                "candle".into(),
                 "rules".into(),
                 "remote".into(),
                 "gguf".into(),
@@ -151,10 +180,7 @@ fn main() -> anyhow::Result<()> {
     let mut table: Vec<Row> = Vec::new();
 
     let t0 = Instant::now();
-    let emb = Arc::new(EmbeddingLabeler::load(
-        ontology.clone(),
-        EmbeddingConfig::new(&assets.minilm_dir),
-    )?);
+    let emb = Arc::new(eval_embedding_labeler(&assets)?);
     println!("embedding: loaded in {:.2?}", t0.elapsed());
 
     if tune {
@@ -222,45 +248,52 @@ fn main() -> anyhow::Result<()> {
         println!("];");
     }
 
+    let mut engine_labels: Vec<(String, Vec<Vec<String>>)> = Vec::new();
     if want("embedding") {
-        // Warm up, then the whole split in rounds of three answers, as the service labels them.
-        emb.label_batch_blocking(&test_texts[..3.min(test_texts.len())])?;
-        let t0 = Instant::now();
-        let mut labels = Vec::new();
-        for chunk in test_texts.chunks(3) {
-            labels.extend(
-                emb.label_batch_blocking(chunk)?
-                    .into_iter()
-                    .map(|o| o.labels),
-            );
-        }
-        let ms = t0.elapsed().as_secs_f64() * 1e3 / test.len() as f64;
+        let (labels, ms) = label_timed(emb.as_ref(), &test_texts)?;
         let pred = masks(&ontology, &labels)?;
         table.push(Row {
-            name: "embedding (rules + all-MiniLM-L6-v2)".into(),
+            name: "embedding (served: rules + all-MiniLM-L6-v2 on onnx)".into(),
             f: f1_scores(&test_y, &pred),
-            per_label: per_label(&ontology, &test_y, &pred),
-            ms,
+            per_label: per_label_f1(&test_y, &pred),
+            round_ms: Some(ms),
             n: test.len(),
         });
+        engine_labels.push(("onnx".into(), labels));
+    }
+
+    if want("candle") {
+        let l = eval_candle_labeler(&assets)?;
+        let (labels, ms) = label_timed(&l, &test_texts)?;
+        let pred = masks(&ontology, &labels)?;
+        table.push(Row {
+            name: "candle (the same matcher, candle encoder)".into(),
+            f: f1_scores(&test_y, &pred),
+            per_label: per_label_f1(&test_y, &pred),
+            round_ms: Some(ms),
+            n: test.len(),
+        });
+        engine_labels.push(("candle".into(), labels));
+    }
+    if let [(a, la), (b, lb)] = engine_labels.as_slice() {
+        let differ = la.iter().zip(lb).filter(|(x, y)| x != y).count();
+        println!(
+            "{a} vs {b} encoder: {differ} of {} answers labelled differently",
+            la.len()
+        );
     }
 
     if want("rules") {
         let mut cfg = EmbeddingConfig::new(&assets.minilm_dir);
         cfg.label_thresholds = ontology.ids().map(|id| (id.to_string(), 2.0f32)).collect();
         let r = EmbeddingLabeler::load(ontology.clone(), cfg)?;
-        let t0 = Instant::now();
-        let mut labels = Vec::new();
-        for chunk in test_texts.chunks(3) {
-            labels.extend(r.label_batch_blocking(chunk)?.into_iter().map(|o| o.labels));
-        }
-        let ms = t0.elapsed().as_secs_f64() * 1e3 / test.len() as f64;
+        let (labels, ms) = label_timed(&r, &test_texts)?;
         let pred = masks(&ontology, &labels)?;
         table.push(Row {
             name: "rules alone (ablation)".into(),
             f: f1_scores(&test_y, &pred),
-            per_label: per_label(&ontology, &test_y, &pred),
-            ms,
+            per_label: per_label_f1(&test_y, &pred),
+            round_ms: Some(ms),
             n: test.len(),
         });
     }
@@ -287,8 +320,8 @@ fn main() -> anyhow::Result<()> {
         table.push(Row {
             name: "remote (OpenAI-compatible, fake server backed by the embedding labeler)".into(),
             f: f1_scores(&test_y, &pred),
-            per_label: per_label(&ontology, &test_y, &pred),
-            ms: f64::NAN,
+            per_label: per_label_f1(&test_y, &pred),
+            round_ms: None,
             n: test.len(),
         });
     }
@@ -301,34 +334,52 @@ fn main() -> anyhow::Result<()> {
         let n = test.len().min(gguf_test);
         let t0 = Instant::now();
         let mut labels = Vec::new();
-        for (i, e) in test[..n].iter().enumerate() {
-            labels.push(lab.label_blocking(&e.text)?.labels);
-            if (i + 1) % 10 == 0 {
-                eprintln!("gguf: {}/{n} answers, {:.1?}", i + 1, t0.elapsed());
-            }
+        let mut times = Vec::new();
+        for (i, round) in test_texts[..n].chunks(ROUND_ANSWERS).enumerate() {
+            let t = Instant::now();
+            labels.extend(
+                lab.label_batch_blocking(round)?
+                    .into_iter()
+                    .map(|o| o.labels),
+            );
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+            eprintln!(
+                "gguf: {}/{n} answers, {:.1?}",
+                ((i + 1) * ROUND_ANSWERS).min(n),
+                t0.elapsed()
+            );
         }
-        let ms = t0.elapsed().as_secs_f64() * 1e3 / n as f64;
         let pred = masks(&ontology, &labels)?;
         table.push(Row {
             name: format!("gguf ({})", lab.name()),
             f: f1_scores(&test_y[..n], &pred),
-            per_label: per_label(&ontology, &test_y[..n], &pred),
-            ms,
+            per_label: per_label_f1(&test_y[..n], &pred),
+            round_ms: Some((pct(&mut times, 0.5), pct(&mut times, 0.95))),
             n,
         });
     }
 
-    println!("\n| labeler | micro-F1 | macro-F1 | ms/answer | test answers |");
-    println!("|---|---|---|---|---|");
+    println!(
+        "\n| labeler | micro-F1 | macro-F1 | worst label | ms per round of {ROUND_ANSWERS} (median / p95) | test answers |"
+    );
+    println!("|---|---|---|---|---|---|");
     for r in &table {
-        let ms = if r.ms.is_nan() {
-            "-".to_string()
-        } else {
-            format!("{:.1}", r.ms)
-        };
+        let ms = r
+            .round_ms
+            .map_or("-".to_string(), |(m, p)| format!("{m:.1} / {p:.1}"));
+        let (wk, wf) = r
+            .per_label
+            .iter()
+            .enumerate()
+            .min_by(|a, b| a.1.total_cmp(b.1))
+            .map_or((0, f64::NAN), |(k, f)| (k, *f));
         println!(
-            "| {} | {:.3} | {:.3} | {ms} | {} |",
-            r.name, r.f.micro, r.f.macro_, r.n
+            "| {} | {:.3} | {:.3} | {} {wf:.3} | {ms} | {} |",
+            r.name,
+            r.f.micro,
+            r.f.macro_,
+            ontology.id(wk),
+            r.n
         );
     }
     println!("\nper-label F1 (test split):\n");
@@ -353,7 +404,8 @@ fn main() -> anyhow::Result<()> {
             .map(|r| {
                 serde_json::json!({
                     "labeler": r.name, "micro_f1": r.f.micro, "macro_f1": r.f.macro_,
-                    "ms_per_answer": if r.ms.is_nan() { None } else { Some(r.ms) }, "answers": r.n,
+                    "round_ms_median": r.round_ms.map(|m| m.0), "round_ms_p95": r.round_ms.map(|m| m.1),
+                    "round_answers": ROUND_ANSWERS, "answers": r.n,
                     "per_label": ontology.ids().zip(&r.per_label).map(|(id, f)| (id.to_string(), *f)).collect::<std::collections::BTreeMap<_, _>>(),
                 })
             })

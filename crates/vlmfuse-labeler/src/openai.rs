@@ -159,4 +159,15 @@ impl Labeler for OpenAiLabeler {
     fn label<'a>(&'a self, text: &'a str) -> BoxFuture<'a, Result<LabelerOutput, LabelerError>> {
         Box::pin(self.label_async(text))
     }
+
+    /// A round's answers as concurrent requests: the server batches them, and the round waits
+    /// for the slowest answer instead of the sum.
+    fn label_batch<'a>(
+        &'a self,
+        texts: &'a [&'a str],
+    ) -> BoxFuture<'a, Result<Vec<LabelerOutput>, LabelerError>> {
+        Box::pin(futures::future::try_join_all(
+            texts.iter().map(|t| self.label_async(t)),
+        ))
+    }
 }

@@ -104,3 +104,116 @@ fn guideline_examples() {
         bad.join("\n")
     );
 }
+
+/// Reading and the rules never panic, whatever the text: `/v1/label` takes arbitrary strings.
+/// Random mixes of driving words, contractions, punctuation, list markers, JSON, and non-ASCII
+/// (combining marks, wide characters, emoji, right-to-left, a lone surrogate-free odd byte
+/// sequence), with the items and polarity the embedding matcher computes on top.
+#[test]
+fn reading_never_panics_on_arbitrary_text() {
+    let pieces = [
+        "brake",
+        "don't",
+        "won't",
+        "n't",
+        "no",
+        "not",
+        "stop",
+        "turn",
+        "left",
+        "right",
+        "exit",
+        "3rd",
+        "be",
+        "ready",
+        "to",
+        "if",
+        "may",
+        "slow",
+        "down",
+        "ease",
+        "off",
+        "zebra",
+        "red",
+        "light",
+        "weather",
+        "isn't",
+        "a",
+        "factor",
+        "yield",
+        "give",
+        "way",
+        "keep",
+        "merge",
+        "1.",
+        "2)",
+        "-",
+        "*",
+        "•",
+        "**",
+        ":",
+        ";",
+        ",",
+        ".",
+        "!",
+        "?",
+        "...",
+        "(",
+        ")",
+        "\"",
+        "'",
+        "’",
+        "—",
+        "–",
+        "\n",
+        "\n\n",
+        "\t",
+        "  ",
+        "{",
+        "}",
+        "[",
+        "]",
+        "\"brake\": false",
+        "é",
+        "e\u{301}",
+        "ß",
+        "İ",
+        "ﬁ",
+        "日本",
+        "😀",
+        "👍🏽",
+        "\u{200d}",
+        "\u{202e}",
+        "مرحبا",
+        "\u{0}",
+        "\u{feff}",
+        "Ⅻ",
+        "１２３",
+        "%",
+        "&",
+        "#",
+        "http://x.y/z",
+        "e.g.",
+        "i.e.",
+    ];
+    let mut rng = vlmfuse_testkit::rng::SplitMix64::new(11);
+    for _ in 0..3000 {
+        let n = (rng.next_u64() % 40) as usize;
+        let mut t = String::new();
+        for _ in 0..n {
+            t.push_str(pieces[(rng.next_u64() % pieces.len() as u64) as usize]);
+            if rng.next_u64() % 3 != 0 {
+                t.push(' ');
+            }
+        }
+        let s = text::sentences(&t);
+        let m = rules::mentions(&s);
+        let _ = rules::decide(&s, &m);
+        for x in &s {
+            for (a, b) in rules::items(x) {
+                let _ = rules::item_polarity(x, a, b);
+                let _ = rules::advice_item(x, a, b);
+            }
+        }
+    }
+}

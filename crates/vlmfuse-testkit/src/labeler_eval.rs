@@ -4,7 +4,58 @@
 use anyhow::Context;
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use vlmfuse_core::{Ontology, OntologyError};
+use vlmfuse_labeler::assets::AssetPaths;
+use vlmfuse_labeler::{
+    BlockingLabeler, EmbeddingConfig, EmbeddingLabeler, LabelerError, LabelerOutput,
+    OnnxEncoderConfig, OnnxSentenceEncoder,
+};
+
+/// Answers per round in the labeler's evaluation and benchmarks. The service labels a round's
+/// answers (one per reporter) in one `label_batch` call; five reporters is a large round, and
+/// the ~30 ms target of the label stage is per round.
+pub const ROUND_ANSWERS: usize = 5;
+
+/// The embedding labeler that `labeler_eval` scores, as `config/default.toml` serves it: the
+/// paper's labels with their glosses, the default settings, and the fetched MiniLM on the ONNX
+/// Runtime encoder (`encoder = "onnx"`, all cores). The service's test holds its served
+/// labeler to this one's labels.
+pub fn eval_embedding_labeler(assets: &AssetPaths) -> Result<EmbeddingLabeler, LabelerError> {
+    let mut enc = OnnxEncoderConfig::new(&assets.minilm_onnx_dir);
+    enc.session.library = Some(assets.onnxruntime.clone());
+    EmbeddingLabeler::with_encoder(
+        Ontology::default_driving(),
+        EmbeddingConfig::new(&assets.minilm_onnx_dir),
+        Arc::new(OnnxSentenceEncoder::load(&enc)?),
+    )
+}
+
+/// The same matcher on the candle encoder (`encoder = "candle"`).
+pub fn eval_candle_labeler(assets: &AssetPaths) -> Result<EmbeddingLabeler, LabelerError> {
+    EmbeddingLabeler::load(
+        Ontology::default_driving(),
+        EmbeddingConfig::new(&assets.minilm_dir),
+    )
+}
+
+/// Labels `texts` in rounds of [`ROUND_ANSWERS`], one `label_batch_blocking` call per round,
+/// as `/v1/infer` labels a round.
+pub fn label_in_rounds<L: BlockingLabeler + ?Sized>(
+    labeler: &L,
+    texts: &[&str],
+) -> Result<Vec<LabelerOutput>, LabelerError> {
+    let mut out = Vec::with_capacity(texts.len());
+    for round in texts.chunks(ROUND_ANSWERS) {
+        out.extend(labeler.label_batch_blocking(round)?);
+    }
+    Ok(out)
+}
+
+/// The held-out answers (`split == "test"`), in file order: never used for tuning.
+pub fn test_split(data: &[Example]) -> Vec<&Example> {
+    data.iter().filter(|e| e.split == "test").collect()
+}
 
 /// One labelled VLM answer.
 #[derive(Debug, Clone, Deserialize)]
@@ -82,6 +133,18 @@ pub fn f1_scores(truth: &[Vec<bool>], pred: &[Vec<bool>]) -> F1 {
         micro: f(stp, sfp, sfn),
         macro_,
     }
+}
+
+/// F1 of each label on its own (ontology order), for per-label tables and the "no label below"
+/// target.
+pub fn per_label_f1(truth: &[Vec<bool>], pred: &[Vec<bool>]) -> Vec<f64> {
+    let l = truth.first().map_or(0, Vec::len);
+    (0..l)
+        .map(|k| {
+            let col = |m: &[Vec<bool>]| m.iter().map(|r| vec![r[k]]).collect::<Vec<_>>();
+            f1_scores(&col(truth), &col(pred)).micro
+        })
+        .collect()
 }
 
 /// Per-label F1 for one column of scores at a threshold.

@@ -37,6 +37,8 @@ pub struct FakeState {
     pub delay_ms: u64,
     /// Requests seen per model.
     pub calls: BTreeMap<String, usize>,
+    /// The last request body per model (what a client sent: prompt, options).
+    pub last_request: BTreeMap<String, Value>,
 }
 
 /// An OpenAI-compatible server on 127.0.0.1:0 with its own runtime (usable from sync and async
@@ -91,6 +93,11 @@ impl FakeOpenAi {
         self.state.lock().unwrap().delay_ms = ms;
     }
 
+    /// The last request body the server got for `model`.
+    pub fn last_request(&self, model: &str) -> Option<Value> {
+        self.state.lock().unwrap().last_request.get(model).cloned()
+    }
+
     pub fn calls(&self, model: &str) -> usize {
         self.state
             .lock()
@@ -129,6 +136,7 @@ async fn chat(
     let (dead, delay) = {
         let mut s = st.lock().unwrap();
         *s.calls.entry(model.clone()).or_default() += 1;
+        s.last_request.insert(model.clone(), body.clone());
         (s.dead.contains(&model), s.delay_ms)
     };
     if delay > 0 {

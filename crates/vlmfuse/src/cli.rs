@@ -1,7 +1,7 @@
 //! The `vlmfuse` command line: one binary for the service (`serve`), the paper's evaluation
-//! protocol (`eval`) and the benchmarks (`bench`).
+//! protocol (`eval`), the benchmarks (`bench`) and the labeler (`label`).
 
-use crate::{bench, config, eval, serve};
+use crate::{bench, config, eval, label, serve};
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
@@ -24,6 +24,8 @@ pub enum Cmd {
     Eval(eval::EvalArgs),
     /// Measure the engine (fuse-then-feedback per round, batched against per-query kNN).
     Bench(bench::BenchArgs),
+    /// Label VLM answers with the configured labeler and show the evidence for each label.
+    Label(label::LabelArgs),
 }
 
 /// Parses the command line, runs the command, and prints an error with its causes.
@@ -33,6 +35,7 @@ pub fn main() -> ExitCode {
         Cmd::Serve(args) => serve::run(*args),
         Cmd::Eval(args) => eval::run(args),
         Cmd::Bench(args) => bench::run(args),
+        Cmd::Label(args) => label::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

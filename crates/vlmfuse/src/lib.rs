@@ -10,13 +10,14 @@
 //! * [`service`]: the engine, the writer thread, the clip pipeline; its own error type, no HTTP;
 //! * [`http`]: the route table, middleware, and the one place errors become statuses;
 //! * [`wire`]: the JSON shapes of the answers;
-//! * [`serve`], [`eval`], [`bench`]: the three subcommands ([`cli`]).
+//! * [`serve`], [`eval`], [`bench`], [`label`]: the subcommands ([`cli`]).
 
 pub mod bench;
 pub mod cli;
 pub mod config;
 pub mod eval;
 pub mod http;
+pub mod label;
 mod plots;
 pub mod serve;
 pub mod service;

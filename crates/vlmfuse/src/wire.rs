@@ -261,3 +261,41 @@ pub fn state_out(eng: &Engine, rounds: u64) -> StateOut {
         dim: eng.dim(),
     }
 }
+
+/// What the labeler made of one text (`POST /v1/label`, `vlmfuse label --json`).
+#[derive(Serialize)]
+pub struct LabelOut {
+    /// Label ids that are on, in ontology order.
+    pub labels: Vec<String>,
+    /// Every label's score, in ontology order (what it means depends on the labeler kind).
+    pub scores: Ordered<f32>,
+    /// Why each label is on, and the mentions that were read and discounted.
+    pub evidence: Vec<vlmfuse_labeler::Evidence>,
+}
+
+impl From<vlmfuse_labeler::LabelerOutput> for LabelOut {
+    fn from(o: vlmfuse_labeler::LabelerOutput) -> Self {
+        LabelOut {
+            labels: o.labels,
+            scores: Ordered(o.scores.into_iter().map(|s| (s.id, s.score)).collect()),
+            evidence: o.evidence,
+        }
+    }
+}
+
+/// `POST /v1/label` with one text.
+#[derive(Serialize)]
+pub struct LabelOneOut {
+    pub labeler: String,
+    pub label_ms: f64,
+    #[serde(flatten)]
+    pub result: LabelOut,
+}
+
+/// `POST /v1/label` with a list of texts: one result per text, in order.
+#[derive(Serialize)]
+pub struct LabelBatchOut {
+    pub labeler: String,
+    pub label_ms: f64,
+    pub results: Vec<LabelOut>,
+}

@@ -20,7 +20,9 @@ mod reporter;
 mod server;
 
 pub use embedder::{EmbedderBackend, EmbedderConfig};
-pub use labeler::{EmbeddingLabelerConfig, GgufLabelerConfig, LabelerConfig, OpenAiLabelerConfig};
+pub use labeler::{
+    EmbeddingLabelerConfig, EncoderEngine, GgufLabelerConfig, LabelerConfig, OpenAiLabelerConfig,
+};
 pub use media::MediaConfig;
 pub use reporter::{ReporterBackend, ReporterEntry};
 pub use server::{Limits, ServerConfig, DEFAULT_DATA_DIR, DEFAULT_LISTEN};
@@ -90,7 +92,8 @@ impl Default for Config {
             server: ServerConfig::default(),
             limits: Limits::default(),
             fusion: FusionConfig::default(),
-            ontology: Ontology::paper(),
+            // The paper's labels with the glosses the labelers are evaluated with.
+            ontology: Ontology::default_driving(),
             media: MediaConfig::default(),
             embedder: None,
             reporter: Vec::new(),
@@ -194,7 +197,10 @@ impl Config {
         }
         let l = &self.limits;
         ensure!(
-            l.max_body_bytes > 0 && l.concurrency_limit > 0 && l.max_batch_rounds > 0,
+            l.max_body_bytes > 0
+                && l.concurrency_limit > 0
+                && l.max_batch_rounds > 0
+                && l.max_label_texts > 0,
             "limits must be at least 1"
         );
         ensure!(

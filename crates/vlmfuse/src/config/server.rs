@@ -52,6 +52,10 @@ pub struct Limits {
     /// Most rounds in one `{"rounds": [...]}` request to /v1/fuse.
     #[arg(long, env = "VLMFUSE_MAX_BATCH_ROUNDS", required = false)]
     pub max_batch_rounds: usize,
+    /// Most texts in one `{"text": [...]}` request to /v1/label (they are labelled as one
+    /// round, in one call, so this bounds one request's hold on the labeler).
+    #[arg(long, env = "VLMFUSE_MAX_LABEL_TEXTS", required = false)]
+    pub max_label_texts: usize,
 }
 
 impl Default for Limits {
@@ -61,6 +65,7 @@ impl Default for Limits {
             concurrency_limit: 512,
             request_timeout_s: 30.0,
             max_batch_rounds: 1024,
+            max_label_texts: 64,
         }
     }
 }

@@ -11,7 +11,9 @@ use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use serde::Serialize;
 use vlmfuse_fusion::FusionError;
+use vlmfuse_labeler::{LabelerError, LabelerErrorKind};
 use vlmfuse_media::{MediaError, MediaErrorClass};
+use vlmfuse_models::BackendError;
 use vlmfuse_store::StoreError;
 
 #[derive(Debug, thiserror::Error)]
@@ -68,6 +70,26 @@ pub fn media_status(class: MediaErrorClass) -> StatusCode {
     }
 }
 
+/// What a labeler failure means to an HTTP client: the labeler is the server's component, so
+/// never the caller's fault. A remote LLM that failed or answered nonsense is a bad gateway; a
+/// full or slow worker queue is a retry-later.
+fn labeler_status(e: &LabelerError) -> (StatusCode, &'static str) {
+    match e {
+        LabelerError::Backend(BackendError::QueueFull { .. }) => {
+            (StatusCode::SERVICE_UNAVAILABLE, "labeler_busy")
+        }
+        LabelerError::Backend(BackendError::TimedOut { .. }) => {
+            (StatusCode::SERVICE_UNAVAILABLE, "timeout")
+        }
+        e => match e.kind() {
+            LabelerErrorKind::Http | LabelerErrorKind::BadAnswer => {
+                (StatusCode::BAD_GATEWAY, "labeler_upstream")
+            }
+            _ => (StatusCode::INTERNAL_SERVER_ERROR, "internal"),
+        },
+    }
+}
+
 fn service_status(e: &ServiceError) -> StatusCode {
     use ServiceError as S;
     match e {
@@ -83,6 +105,7 @@ fn service_status(e: &ServiceError) -> StatusCode {
         S::NotReady { .. } | S::ReportersFailed(_) => StatusCode::SERVICE_UNAVAILABLE,
         S::Media(m) => media_status(m.class()),
         S::Embedder(_) | S::WriterStopped | S::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
+        S::Labeler(l) => labeler_status(l).0,
     }
 }
 
@@ -100,6 +123,7 @@ fn service_kind(e: &ServiceError) -> &'static str {
         S::NotReady { .. } => "not_ready",
         S::ReportersFailed(_) => "reporters_failed",
         S::Media(m) if m.is_client_error() => m.kind(),
+        S::Labeler(l) => labeler_status(l).1,
         S::Media(_) | S::NotStored(_) | S::Embedder(_) | S::WriterStopped | S::Internal(_) => {
             "internal"
         }
@@ -292,6 +316,21 @@ mod tests {
         let e = ApiError::from(ServiceError::Store(StoreError::Mismatch("dim".into())));
         assert_eq!((e.status().as_u16(), e.kind()), (422, "dimension_mismatch"));
         let e = ApiError::from(ServiceError::WriterStopped);
+        assert_eq!((e.status().as_u16(), e.kind()), (500, "internal"));
+        let e = ApiError::from(ServiceError::Labeler(LabelerError::BadAnswer {
+            labeler: "openai:x".into(),
+            attempts: 2,
+            reason: "unknown label".into(),
+        }));
+        assert_eq!((e.status().as_u16(), e.kind()), (502, "labeler_upstream"));
+        let e = ApiError::from(ServiceError::Labeler(LabelerError::Backend(
+            BackendError::QueueFull {
+                backend: "embedding".into(),
+                capacity: 64,
+            },
+        )));
+        assert_eq!((e.status().as_u16(), e.kind()), (503, "labeler_busy"));
+        let e = ApiError::from(ServiceError::Labeler(LabelerError::Model("nan".into())));
         assert_eq!((e.status().as_u16(), e.kind()), (500, "internal"));
     }
 }

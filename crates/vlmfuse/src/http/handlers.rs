@@ -2,6 +2,7 @@
 
 use super::error::ApiError;
 use super::AppState;
+use crate::service::ServiceError;
 use axum::extract::{FromRequest, Request, State};
 use axum::http::{header, HeaderMap, HeaderValue};
 use axum::response::{IntoResponse, Response};
@@ -46,6 +47,62 @@ pub async fn feedback(
             .insert("x-vlmfuse-repeated", HeaderValue::from_static("true"));
     }
     Ok(resp)
+}
+
+/// `POST /v1/label`: `{"text": "..."}` or `{"text": ["...", ...]}` → labels with evidence.
+pub async fn label(
+    State(st): State<AppState>,
+    ApiJson(body): ApiJson<Value>,
+) -> Result<Response, ApiError> {
+    let (texts, batch) = label_texts(&body)?;
+    let out = st.service.label(&texts).await?;
+    let mut results = out.outputs.into_iter().map(crate::wire::LabelOut::from);
+    Ok(if batch {
+        axum::Json(crate::wire::LabelBatchOut {
+            labeler: out.labeler,
+            label_ms: out.label_ms,
+            results: results.collect(),
+        })
+        .into_response()
+    } else {
+        axum::Json(crate::wire::LabelOneOut {
+            labeler: out.labeler,
+            label_ms: out.label_ms,
+            result: results.next().expect("one output per text"),
+        })
+        .into_response()
+    })
+}
+
+/// Reads `/v1/label`'s body by hand, so that every mistake is named exactly (serde's untagged
+/// enums only say "did not match any variant").
+fn label_texts(body: &Value) -> Result<(Vec<String>, bool), ServiceError> {
+    let bad = |m: String| ServiceError::Invalid(m);
+    let obj = body
+        .as_object()
+        .ok_or_else(|| bad("the body must be a JSON object {\"text\": ...}".into()))?;
+    if let Some(k) = obj.keys().find(|k| k.as_str() != "text") {
+        return Err(bad(format!(
+            "unknown field {k:?}; the only field is \"text\""
+        )));
+    }
+    match obj.get("text") {
+        None => Err(bad(
+            "missing field \"text\" (a string or a list of strings)".into(),
+        )),
+        Some(Value::String(t)) => Ok((vec![t.clone()], false)),
+        Some(Value::Array(xs)) => xs
+            .iter()
+            .enumerate()
+            .map(|(i, x)| {
+                x.as_str()
+                    .map(str::to_string)
+                    .ok_or_else(|| bad(format!("text[{i}] is not a string")))
+            })
+            .collect::<Result<Vec<_>, _>>()
+            .map(|v| (v, true)),
+        Some(_) => Err(bad("\"text\" must be a string or a list of strings".into())),
+    }
 }
 
 /// `GET /v1/state`.

@@ -42,7 +42,8 @@ pub enum Access {
     Open,
     /// Reads under the concurrency limit.
     Limited,
-    /// Writes: bearer token (when configured), then the concurrency limit.
+    /// Writes, and routes that run models: bearer token (when configured), then the
+    /// concurrency limit.
     Write,
 }
 
@@ -98,6 +99,8 @@ pub fn routes() -> Vec<RouteDef> {
             ..r("post", "/v1/infer", Write, post(infer::infer))
         },
         r("post", "/v1/feedback", Write, post(h::feedback)),
+        // Labelling runs a model: behind the key and the limit like the other model routes.
+        r("post", "/v1/label", Write, post(h::label)),
         r("get", "/v1/state", Limited, get(h::state)),
         r("get", "/v1/ontology", Limited, get(h::ontology)),
         r("get", "/healthz", Open, get(h::healthz)),

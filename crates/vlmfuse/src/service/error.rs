@@ -53,6 +53,10 @@ pub enum ServiceError {
     Media(#[from] MediaError),
     #[error("internal error: embedder: {0}")]
     Embedder(#[source] ModelError),
+    /// The labeler failed on a `/v1/label` request (its kind says whether the model, a remote
+    /// server or its queue).
+    #[error("labeler: {0}")]
+    Labeler(#[source] vlmfuse_labeler::LabelerError),
     /// The writer thread is gone (shutting down, or it panicked).
     #[error("internal error: the writer stopped")]
     WriterStopped,
@@ -78,6 +82,13 @@ impl ServiceError {
             ServiceError::Media(e) => !e.is_client_error(),
             ServiceError::Embedder(_) | ServiceError::WriterStopped | ServiceError::Internal(_) => {
                 true
+            }
+            ServiceError::Labeler(e) => {
+                !matches!(
+                    e.kind(),
+                    vlmfuse_labeler::LabelerErrorKind::Http
+                        | vlmfuse_labeler::LabelerErrorKind::BadAnswer
+                ) && !matches!(e, vlmfuse_labeler::LabelerError::Backend(_))
             }
             _ => false,
         }

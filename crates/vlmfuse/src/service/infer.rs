@@ -35,6 +35,46 @@ struct Processed {
     timings: Vec<(String, f64)>,
 }
 
+/// Labels a round's answers the way `labeler_eval` scores them: in one `label_batch` call (the
+/// embedding labeler encodes every clause of every answer in one pass; a pooled labeler takes one
+/// queue slot for the round). Each answer's `label_ms` is the round's, since they were labelled
+/// together. When the batch fails, the answers are labelled one by one so that a failure (a
+/// remote LLM's bad answer) is charged to the reporter whose text caused it and the others still
+/// count.
+async fn label_round(
+    labeler: &dyn vlmfuse_labeler::Labeler,
+    answered: Vec<(String, vlmfuse_models::ReporterOutput)>,
+) -> Vec<(
+    String,
+    vlmfuse_models::ReporterOutput,
+    Result<vlmfuse_labeler::LabelerOutput, vlmfuse_labeler::LabelerError>,
+    f64,
+)> {
+    let t = Instant::now();
+    let texts: Vec<&str> = answered.iter().map(|(_, o)| o.text.as_str()).collect();
+    match labeler.label_batch(&texts).await {
+        Ok(outs) if outs.len() == answered.len() => {
+            let ms = t.elapsed().as_secs_f64() * 1e3;
+            answered
+                .into_iter()
+                .zip(outs)
+                .map(|((name, out), l)| (name, out, Ok(l), ms))
+                .collect()
+        }
+        first => {
+            if let Err(e) = &first {
+                tracing::warn!(error = %e, "labelling the round failed; labelling each answer");
+            }
+            futures::future::join_all(answered.into_iter().map(|(name, out)| async move {
+                let t = Instant::now();
+                let res = labeler.label(&out.text).await;
+                (name, out, res, t.elapsed().as_secs_f64() * 1e3)
+            }))
+            .await
+        }
+    }
+}
+
 /// Records a stage's time in `vlmfuse_stage_seconds` and returns it in milliseconds.
 pub(crate) fn stage(name: &'static str, start: Instant) -> f64 {
     let s = start.elapsed().as_secs_f64();
@@ -170,15 +210,7 @@ impl Service {
                 }
             }
         }
-        let labelled = futures::future::join_all(answered.into_iter().map(|(name, out)| {
-            let labeler = labeler.clone();
-            async move {
-                let t = Instant::now();
-                let res = labeler.label(&out.text).await;
-                (name, out, res, t.elapsed().as_secs_f64() * 1e3)
-            }
-        }))
-        .await;
+        let labelled = label_round(labeler.as_ref(), answered).await;
         timings.push(("label".into(), stage("label", start)));
 
         let mut reports = BTreeMap::new();

@@ -11,6 +11,7 @@
 mod error;
 mod fuse;
 mod infer;
+mod label;
 pub mod pipeline;
 pub mod writer;
 
@@ -18,6 +19,7 @@ pub use error::ServiceError;
 pub use fuse::Fused;
 pub(crate) use infer::stage;
 pub use infer::{Inferred, Upload};
+pub use label::Labelled;
 pub use pipeline::Pipeline;
 
 use crate::config::Config;

@@ -4,7 +4,7 @@
 //! that is simply not configured is named too, but only `/v1/infer` refuses (503) because of it:
 //! `/v1/fuse` does not need it.
 
-use crate::config::{Config, EmbedderBackend, LabelerConfig, ReporterBackend};
+use crate::config::{Config, EmbedderBackend, EncoderEngine, LabelerConfig, ReporterBackend};
 use anyhow::{bail, Context};
 use std::sync::Arc;
 use std::time::Duration;
@@ -25,7 +25,29 @@ pub struct Pipeline {
     /// Configured reporters that failed to load (also in `failed`): /v1/infer runs without
     /// them and names them in every response's `failed`.
     pub unloaded_reporters: Vec<(String, String)>,
+    /// Without a clip pipeline the labeler is not loaded at startup; `/v1/label` loads it here.
+    lazy_labeler: Option<LazyLabeler>,
 }
+
+/// Everything a labeler is built from: the `[labeler]` table, the ontology (with the configured
+/// descriptions, which the LLM labelers' prompt shows) and where the fetched models live.
+#[derive(Clone)]
+struct LabelerSpec {
+    config: LabelerConfig,
+    ontology: vlmfuse_labeler::Ontology,
+    assets: vlmfuse_labeler::assets::AssetPaths,
+}
+
+struct LazyLabeler {
+    spec: LabelerSpec,
+    /// Set once a load succeeds; a failed load is retried by the next call (after the operator
+    /// fetched the model, say), and concurrent first calls wait for one load.
+    cell: tokio::sync::OnceCell<Arc<dyn Labeler>>,
+}
+
+/// Why the labeler cannot be used.
+#[derive(Debug)]
+pub struct LabelerUnavailable(pub String);
 
 impl Pipeline {
     /// Why /v1/infer cannot run, or empty when it can. A reporter that failed to load does not
@@ -39,6 +61,43 @@ impl Pipeline {
                 .cloned(),
         );
         out
+    }
+
+    /// The labeler for `POST /v1/label`: the one loaded at startup, or (without a clip
+    /// pipeline) the one loaded on first use.
+    pub async fn label_route_labeler(&self) -> Result<Arc<dyn Labeler>, LabelerUnavailable> {
+        if let Some(l) = &self.labeler {
+            return Ok(l.clone());
+        }
+        let Some(lazy) = &self.lazy_labeler else {
+            let why = self
+                .failed
+                .iter()
+                .find(|f| f.starts_with("labeler"))
+                .cloned()
+                .unwrap_or_else(|| "labeler: not loaded".into());
+            return Err(LabelerUnavailable(why));
+        };
+        lazy.cell
+            .get_or_try_init(|| async {
+                let spec = lazy.spec.clone();
+                let t0 = std::time::Instant::now();
+                let l = tokio::task::spawn_blocking(move || spec.load())
+                    .await
+                    .map_err(|e| LabelerUnavailable(format!("labeler: load panicked: {e}")))?
+                    .map_err(|e| {
+                        tracing::error!("labeler not loaded: {e:#}");
+                        LabelerUnavailable(format!("labeler: {e:#}"))
+                    })?;
+                tracing::info!(
+                    labeler = l.name(),
+                    secs = t0.elapsed().as_secs_f64(),
+                    "labeler loaded on first use"
+                );
+                Ok(l)
+            })
+            .await
+            .cloned()
     }
 
     /// Loads every configured component; blocking loads run on the blocking pool, in parallel.
@@ -117,69 +176,20 @@ impl Pipeline {
             })
             .collect();
 
-        // Labeler: only loaded when there is a clip pipeline to serve; a /v1/fuse-only
-        // deployment must not load (or be unready for lack of) a model it never uses.
+        // Labeler: loaded at startup only when there is a clip pipeline to serve; a
+        // /v1/fuse-only deployment must not load (or be unready for lack of) a model it never
+        // uses. There, `POST /v1/label` loads it on first use.
         let wanted = cfg.embedder.is_some() || !cfg.reporter.is_empty();
-        // The labeler and the engine share one ontology type: no translation.
-        let ontology = cfg.ontology.clone();
-        let assets = cfg.assets();
-        let lc = cfg.labeler.clone();
-        let labeler = tokio::task::spawn_blocking(move || -> anyhow::Result<Arc<dyn Labeler>> {
-            if !wanted {
-                bail!("not loaded: no clip pipeline is configured");
-            }
-            match lc {
-                LabelerConfig::Embedding(lc) => {
-                    let dir = lc.model_dir.clone().unwrap_or(assets.minilm_dir);
-                    if !dir.join("model.safetensors").is_file() {
-                        bail!(
-                            "embedding labeler: no MiniLM model in {} (run scripts/fetch-assets.sh \
-                             or set labeler.model_dir)",
-                            dir.display()
-                        );
-                    }
-                    let mut ec = vlmfuse_labeler::EmbeddingConfig::new(dir);
-                    if let Some(t) = lc.threshold {
-                        ec.threshold = t;
-                    }
-                    let l = vlmfuse_labeler::EmbeddingLabeler::load(ontology, ec)
-                        .context("embedding labeler")?;
-                    pooled_labeler(l)
-                }
-                LabelerConfig::Gguf(lc) => {
-                    let path = lc.model_path.clone().unwrap_or(assets.gemma_gguf);
-                    // The GGUF labeler decodes a label list; it has no threshold.
-                    let mut gc = vlmfuse_labeler::GgufConfig::new(path);
-                    gc.chat_template = lc.chat_template;
-                    if let Some(n) = lc.max_answer_tokens {
-                        gc.max_answer_tokens = n;
-                    }
-                    let l =
-                        vlmfuse_labeler::GgufLabeler::load(ontology, gc).context("gguf labeler")?;
-                    pooled_labeler(l)
-                }
-                LabelerConfig::Openai(lc) => {
-                    let mut oc = vlmfuse_labeler::OpenAiConfig::default();
-                    if let Some(u) = lc.base_url {
-                        oc.base_url = u;
-                    }
-                    if let Some(m) = lc.model {
-                        oc.model = m;
-                    }
-                    if let Some(var) = lc.api_key_env {
-                        oc.api_key = std::env::var(&var).ok().filter(|v| !v.is_empty());
-                    }
-                    if let Some(j) = lc.json_mode {
-                        oc.json_mode = j;
-                    }
-                    if let Some(t) = lc.timeout_s {
-                        oc.timeout = Duration::from_secs_f64(t);
-                    }
-                    let l = vlmfuse_labeler::OpenAiLabeler::new(ontology, oc)
-                        .context("openai labeler")?;
-                    Ok(Arc::new(l) as Arc<dyn Labeler>)
-                }
-            }
+        let spec = LabelerSpec {
+            // The labeler and the engine share one ontology type (with the configured
+            // descriptions): no translation.
+            ontology: cfg.ontology.clone(),
+            assets: cfg.assets(),
+            config: cfg.labeler.clone(),
+        };
+        let labeler = wanted.then(|| {
+            let spec = spec.clone();
+            tokio::task::spawn_blocking(move || spec.load())
         });
 
         match embedder {
@@ -210,20 +220,144 @@ impl Pipeline {
                 }
             }
         }
-        match labeler.await {
-            Ok(Ok(l)) => {
-                p.labeler_name = l.name().to_string();
-                p.labeler = Some(l);
+        match labeler {
+            None => {
+                p.not_configured.push(
+                    "labeler: not loaded: no clip pipeline is configured (POST /v1/label loads \
+                     it on first use)"
+                        .into(),
+                );
+                p.lazy_labeler = Some(LazyLabeler {
+                    spec,
+                    cell: tokio::sync::OnceCell::new(),
+                });
             }
-            Ok(Err(e)) if !wanted => p.not_configured.push(format!("labeler: {e:#}")),
-            Ok(Err(e)) => p.failed.push(format!("labeler: {e:#}")),
-            Err(e) => p.failed.push(format!("labeler: load panicked: {e}")),
+            Some(task) => match task.await {
+                Ok(Ok(l)) => {
+                    p.labeler_name = l.name().to_string();
+                    p.labeler = Some(l);
+                }
+                Ok(Err(e)) => p.failed.push(format!("labeler: {e:#}")),
+                Err(e) => p.failed.push(format!("labeler: load panicked: {e}")),
+            },
         }
         for f in &p.failed {
             tracing::error!("component not loaded: {f}");
         }
         p
     }
+}
+
+/// The configured labeler, built as the service builds it (`vlmfuse label` uses this, so the
+/// command line and `/v1/label` cannot disagree). Blocking: model loads take seconds.
+pub fn load_labeler(cfg: &Config) -> anyhow::Result<Arc<dyn Labeler>> {
+    LabelerSpec {
+        ontology: cfg.ontology.clone(),
+        assets: cfg.assets(),
+        config: cfg.labeler.clone(),
+    }
+    .load()
+}
+
+impl LabelerSpec {
+    /// Builds the configured labeler (blocking: model loads take seconds).
+    fn load(self) -> anyhow::Result<Arc<dyn Labeler>> {
+        let LabelerSpec {
+            config,
+            ontology,
+            assets,
+        } = self;
+        match config {
+            LabelerConfig::Embedding(lc) => {
+                let mut ec = vlmfuse_labeler::EmbeddingConfig::new(&assets.minilm_dir);
+                if let Some(t) = lc.threshold {
+                    ec.threshold = t;
+                }
+                let l = match lc.encoder {
+                    EncoderEngine::Onnx => {
+                        let dir = lc
+                            .model_dir
+                            .clone()
+                            .unwrap_or(assets.minilm_onnx_dir.clone());
+                        // The speller reads the encoder's own tokenizer.json.
+                        ec.model_dir = dir.clone();
+                        let enc = vlmfuse_labeler::OnnxSentenceEncoder::load(
+                            &vlmfuse_labeler::OnnxEncoderConfig {
+                                session: vlmfuse_ort::SessionOptions {
+                                    threads: lc.threads,
+                                    library: onnx_library(&assets),
+                                },
+                                ..vlmfuse_labeler::OnnxEncoderConfig::new(&dir)
+                            },
+                        )
+                        .with_context(|| {
+                            format!(
+                                "embedding labeler: the ONNX encoder in {} (run \
+                                 scripts/fetch-assets.sh, set labeler.model_dir, or use \
+                                 encoder = \"candle\")",
+                                dir.display()
+                            )
+                        })?;
+                        vlmfuse_labeler::EmbeddingLabeler::with_encoder(ontology, ec, Arc::new(enc))
+                            .context("embedding labeler")?
+                    }
+                    EncoderEngine::Candle => {
+                        let dir = lc.model_dir.clone().unwrap_or(assets.minilm_dir);
+                        if !dir.join("model.safetensors").is_file() {
+                            bail!(
+                                "embedding labeler: no MiniLM model in {} (run \
+                                 scripts/fetch-assets.sh or set labeler.model_dir)",
+                                dir.display()
+                            );
+                        }
+                        ec.model_dir = dir;
+                        vlmfuse_labeler::EmbeddingLabeler::load(ontology, ec)
+                            .context("embedding labeler")?
+                    }
+                };
+                pooled_labeler(l)
+            }
+            LabelerConfig::Gguf(lc) => {
+                let path = lc.model_path.clone().unwrap_or(assets.gemma_gguf);
+                // The GGUF labeler decodes a label list; it has no threshold.
+                let mut gc = vlmfuse_labeler::GgufConfig::new(path);
+                gc.chat_template = lc.chat_template;
+                if let Some(n) = lc.max_answer_tokens {
+                    gc.max_answer_tokens = n;
+                }
+                let l = vlmfuse_labeler::GgufLabeler::load(ontology, gc).context("gguf labeler")?;
+                pooled_labeler(l)
+            }
+            LabelerConfig::Openai(lc) => {
+                let mut oc = vlmfuse_labeler::OpenAiConfig::default();
+                if let Some(u) = lc.base_url {
+                    oc.base_url = u;
+                }
+                if let Some(m) = lc.model {
+                    oc.model = m;
+                }
+                if let Some(var) = lc.api_key_env {
+                    oc.api_key = std::env::var(&var).ok().filter(|v| !v.is_empty());
+                }
+                if let Some(j) = lc.json_mode {
+                    oc.json_mode = j;
+                }
+                if let Some(t) = lc.timeout_s {
+                    oc.timeout = Duration::from_secs_f64(t);
+                }
+                let l =
+                    vlmfuse_labeler::OpenAiLabeler::new(ontology, oc).context("openai labeler")?;
+                Ok(Arc::new(l) as Arc<dyn Labeler>)
+            }
+        }
+    }
+}
+
+/// The ONNX Runtime library: `$ORT_DYLIB_PATH` when set, else the fetched one under the
+/// configured asset directory.
+fn onnx_library(assets: &vlmfuse_labeler::assets::AssetPaths) -> Option<std::path::PathBuf> {
+    let env = std::env::var_os(vlmfuse_ort::DYLIB_ENV).filter(|v| !v.is_empty());
+    env.is_none().then(|| assets.onnxruntime.clone())
 }
 
 /// A local labeler behind its own worker thread.

@@ -1,7 +1,8 @@
 //! The tests that need the real `vlmfuse` binary: `kill -9` and SIGTERM, and `vlmfuse eval`'s
-//! command line. Everything else runs in-process (the `service` tests).
+//! and `vlmfuse label`'s command lines. Everything else runs in-process (the `service` tests).
 
 mod eval_cli;
+mod label_cli;
 mod replay;
 mod shutdown;
 mod support;

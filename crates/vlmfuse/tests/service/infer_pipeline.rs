@@ -145,7 +145,7 @@ async fn the_embedding_labeler_labels_reporter_text_in_the_pipeline() {
     cfg += &clip_embedder_toml(tmp.path());
     cfg += &fake.reporter_toml("videollama2", "frames");
     cfg += &format!(
-        "[labeler]\nkind = \"embedding\"\nmodel_dir = {:?}\n",
+        "[labeler]\nkind = \"embedding\"\nencoder = \"candle\"\nmodel_dir = {:?}\n",
         assets.minilm_dir
     );
     let srv = TestApp::from_toml(tmp.path(), &cfg).await;

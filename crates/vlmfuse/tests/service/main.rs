@@ -5,4 +5,5 @@ mod concurrency;
 mod errors;
 mod infer_media;
 mod infer_pipeline;
+mod label;
 mod support;
