@@ -296,7 +296,31 @@ impl Engine {
                 e.iter().map(|v| v / z).collect()
             }
         };
-        crate::engine::fixed_share(&raw, a.fixed_share)
+        let mixed = crate::engine::fixed_share(&raw, a.fixed_share);
+        // A reporter that sat the round out keeps its weight: absence says nothing about its
+        // accuracy. The coalition shares the rest in the proportions the update gave it.
+        let n = w.len();
+        if coalition.len() == n || coalition.is_empty() {
+            return mixed;
+        }
+        let mut present = vec![false; n];
+        for &i in coalition {
+            present[i] = true;
+        }
+        let absent: f64 = (0..n).filter(|&i| !present[i]).map(|i| w[i]).sum();
+        let share: f64 = coalition.iter().map(|&i| mixed[i]).sum();
+        if share <= 0.0 || !share.is_finite() {
+            return w.to_vec();
+        }
+        (0..n)
+            .map(|i| {
+                if present[i] {
+                    mixed[i] * (1.0 - absent) / share
+                } else {
+                    w[i]
+                }
+            })
+            .collect()
     }
 
     /// Advances the credit state with a credited round.

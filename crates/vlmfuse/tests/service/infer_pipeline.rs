@@ -237,6 +237,5 @@ async fn the_onnx_embedder_serves_infer() {
     let bad = cfg.replace("backend = \"onnx\"", "backend = \"onnx\"\ndevice = \"cuda\"");
     let srv2 = TestApp::from_toml(tmp2.path(), &bad).await;
     let ready = srv2.get("/readyz").await.json();
-    assert_eq!(ready["infer"]["ready"], false, "{ready}");
     assert!(ready.to_string().contains("runs on the CPU"), "{ready}");
 }
