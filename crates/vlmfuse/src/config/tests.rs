@@ -153,7 +153,8 @@ fn the_embedder_backend_is_chosen_in_the_file_and_typos_are_refused() {
     assert_eq!(e.model_file.as_deref(), Some("onnx/vision_model.onnx"));
     let cfg = Config::from_toml("[embedder]\nweights = { path = \"/m/clip\" }\n").unwrap();
     assert_eq!(cfg.embedder.unwrap().backend, EmbedderBackend::Candle);
-    let err = Config::from_toml("[embedder]\nweights = { path = \"/m\" }\nbackend = \"tensorrt\"\n")
-        .unwrap_err();
+    let err =
+        Config::from_toml("[embedder]\nweights = { path = \"/m\" }\nbackend = \"tensorrt\"\n")
+            .unwrap_err();
     assert!(format!("{err:#}").contains("backend"), "{err:#}");
 }

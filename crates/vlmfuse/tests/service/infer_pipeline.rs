@@ -210,8 +210,10 @@ async fn the_onnx_embedder_serves_infer() {
     let assets = vlmfuse_testkit::assets::ensure_assets().expect("assets (libonnxruntime)");
     let tmp = tempfile::tempdir().unwrap();
     let fake = FakeOpenAi::start();
-    let model = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/onnx/tiny-clip");
-    let mut cfg = String::from("reporters = [\"videollama2\", \"videollava\"]\n\n[media]\nframes = 4\n\n");
+    let model =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/onnx/tiny-clip");
+    let mut cfg =
+        String::from("reporters = [\"videollama2\", \"videollava\"]\n\n[media]\nframes = 4\n\n");
     cfg += &format!(
         "[embedder]\nweights = {{ path = {model:?} }}\nbackend = \"onnx\"\nthreads = 1\n\
          onnx_library = {:?}\n\n",
@@ -234,7 +236,10 @@ async fn the_onnx_embedder_serves_infer() {
 
     // A GPU device is refused for the CPU-only backend, and /readyz says why.
     let tmp2 = tempfile::tempdir().unwrap();
-    let bad = cfg.replace("backend = \"onnx\"", "backend = \"onnx\"\ndevice = \"cuda\"");
+    let bad = cfg.replace(
+        "backend = \"onnx\"",
+        "backend = \"onnx\"\ndevice = \"cuda\"",
+    );
     let srv2 = TestApp::from_toml(tmp2.path(), &bad).await;
     let ready = srv2.get("/readyz").await.json();
     assert!(ready.to_string().contains("runs on the CPU"), "{ready}");
