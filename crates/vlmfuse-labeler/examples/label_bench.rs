@@ -7,7 +7,8 @@
 //! CARGO_TARGET_DIR=/work/target-release cargo build --release -p vlmfuse-labeler --example label_bench
 //! /work/target-release/release/examples/label_bench [--passes N] [--threads N]
 //! ```
-//! Reported, in one run: per engine the median and p95 of the batched call, and the same
+//! Reported, in one run: per engine the median and p95 of the batched call (and its CPU time,
+//! all threads, which a loaded machine inflates less than wall time), and the same
 //! answers labelled one call each; the rules alone (reading and rules, no encoder); and how many
 //! items per round reach the encoder (advice items no rule explained) against all items (what
 //! embedding every clause, as the previous matcher did, would cost).
@@ -44,7 +45,26 @@ fn ms(t0: Instant) -> f64 {
     t0.elapsed().as_secs_f64() * 1e3
 }
 
+/// CPU time of the whole process (every thread, the ONNX pool's included), ms: the work a call
+/// did, which other processes on a shared machine inflate far less than its wall time.
+fn cpu_ms() -> f64 {
+    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: getrusage only writes into the struct we own.
+    unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) };
+    let tv = |t: libc::timeval| t.tv_sec as f64 * 1e3 + t.tv_usec as f64 / 1e3;
+    tv(u.ru_utime) + tv(u.ru_stime)
+}
+
+/// The 1-minute load average: on a shared machine, what the timings must be read against.
+fn load() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .ok()
+        .and_then(|s| s.split_whitespace().next().map(str::to_string))
+        .unwrap_or_else(|| "?".into())
+}
+
 fn main() {
+    let load_before = load();
     let passes = arg("--passes", 3);
     let threads = arg(
         "--threads",
@@ -80,15 +100,17 @@ fn main() {
         }
     }
     let mut batched = vec![Vec::new(); engines.len()];
+    let mut batched_cpu = vec![Vec::new(); engines.len()];
     let mut separate = vec![Vec::new(); engines.len()];
     let mut rules_only = Vec::new();
     let (mut items, mut encoded, mut words) = (0usize, 0usize, 0usize);
     for pass in 0..passes {
         for r in &rounds {
             for (e, (_, l)) in engines.iter().enumerate() {
-                let t0 = Instant::now();
+                let (t0, c0) = (Instant::now(), cpu_ms());
                 l.label_batch_blocking(r).unwrap();
                 batched[e].push(ms(t0));
+                batched_cpu[e].push(cpu_ms() - c0);
                 let t0 = Instant::now();
                 for t in r.iter() {
                     l.label_blocking(t).unwrap();
@@ -132,10 +154,11 @@ fn main() {
     let n = rounds.len() as f64;
     println!(
         "{} rounds of {ROUND_ANSWERS} test answers ({:.0} words per round) x {passes} passes, \
-         onnx on {threads} threads, {} cores",
+         onnx on {threads} threads, {} cores, load average {load_before} -> {}",
         rounds.len(),
         words as f64 / n,
-        std::thread::available_parallelism().map_or(1, |n| n.get())
+        std::thread::available_parallelism().map_or(1, |n| n.get()),
+        load()
     );
     println!(
         "  items per round: {:.1}, of which {:.1} reach the encoder (advice no rule explained)",
@@ -146,7 +169,8 @@ fn main() {
     for (e, (name, _)) in engines.iter().enumerate() {
         let (p50, p95) = (pct(&mut batched[e], 0.5), pct(&mut batched[e], 0.95));
         medians.push(p50);
-        println!("  {name:<6} label_batch (the service's call)   median {p50:>6.2} ms   p95 {p95:>6.2} ms");
+        let cpu = pct(&mut batched_cpu[e], 0.5);
+        println!("  {name:<6} label_batch (the service's call)   median {p50:>6.2} ms   p95 {p95:>6.2} ms   (CPU median {cpu:>6.2} ms)");
         let (p50, p95) = (pct(&mut separate[e], 0.5), pct(&mut separate[e], 0.95));
         println!("  {name:<6} {ROUND_ANSWERS} separate label calls         median {p50:>6.2} ms   p95 {p95:>6.2} ms");
     }

@@ -31,8 +31,8 @@ use vlmfuse_labeler::{
 };
 use vlmfuse_testkit::assets::{ensure_assets, AssetsUnavailable};
 use vlmfuse_testkit::labeler_eval::{
-    default_dataset_path, eval_candle_labeler, eval_embedding_labeler, f1_scores, load_dataset,
-    per_label_f1, to_mask, Example, F1, ROUND_ANSWERS,
+    default_dataset_path, eval_candle_labeler, eval_embedding_labeler, f1_scores, label_f1,
+    load_dataset, per_label_f1, to_mask, Example, F1, ROUND_ANSWERS,
 };
 
 fn arg_value(args: &[String], name: &str) -> Option<String> {
@@ -82,23 +82,6 @@ fn masks(o: &Ontology, outs: &[Vec<String>]) -> anyhow::Result<Vec<Vec<bool>>> {
         .iter()
         .map(|l| to_mask(o, l))
         .collect::<Result<_, _>>()?)
-}
-
-fn label_f1(scores: &[f32], truth: &[bool], base: &[bool], t: f32) -> f64 {
-    let (mut tp, mut fp, mut fnn) = (0, 0, 0);
-    for ((&s, &y), &b) in scores.iter().zip(truth).zip(base) {
-        match (y, b || s >= t) {
-            (true, true) => tp += 1,
-            (false, true) => fp += 1,
-            (true, false) => fnn += 1,
-            _ => {}
-        }
-    }
-    if tp + fp + fnn == 0 {
-        1.0
-    } else {
-        2.0 * tp as f64 / (2 * tp + fp + fnn) as f64
-    }
 }
 
 /// A fake OpenAI-compatible server whose "model" is the embedding labeler.
@@ -202,9 +185,8 @@ fn main() -> anyhow::Result<()> {
                     .iter()
                     .map(|r| emb.decide_with(r, &th).labels.contains(&l.id))
                     .collect();
-                let b = vec![false; p.len()];
                 let s: Vec<f32> = p.iter().map(|&x| if x { 1.0 } else { 0.0 }).collect();
-                label_f1(&s, &y, &b, 0.5)
+                label_f1(&s, &y, 0.5)
             };
             let mut best = (f_at(2.0), 2.0f32);
             let mut t = 0.95f32;

@@ -8,6 +8,7 @@
 //! caller still makes one call, and the result is identical to per-text encoding up to float
 //! rounding (padding is masked out of attention and pooling).
 
+use crate::encoder::length_groups;
 use crate::{LabelerError, SentenceEncoder};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
@@ -94,36 +95,6 @@ impl CandleEncoder {
     }
 }
 
-/// Splits rows sorted by length (longest first) into buckets that minimise padded tokens plus a
-/// per-call overhead. Returns bucket boundaries as index ranges into the sorted order.
-pub(crate) fn length_buckets(sorted_lens: &[usize], overhead: usize) -> Vec<(usize, usize)> {
-    let n = sorted_lens.len();
-    if n == 0 {
-        return Vec::new();
-    }
-    // best[i]: minimal cost of rows i..n; rows are sorted descending, so a bucket i..j is padded
-    // to sorted_lens[i]. O(n^2) over a few dozen clauses is negligible.
-    let mut best = vec![usize::MAX; n + 1];
-    let mut next = vec![n; n + 1];
-    best[n] = 0;
-    for i in (0..n).rev() {
-        for j in i + 1..=n {
-            let c = overhead + sorted_lens[i] * (j - i) + best[j];
-            if c < best[i] {
-                best[i] = c;
-                next[i] = j;
-            }
-        }
-    }
-    let mut out = Vec::new();
-    let mut i = 0;
-    while i < n {
-        out.push((i, next[i]));
-        i = next[i];
-    }
-    out
-}
-
 impl SentenceEncoder for CandleEncoder {
     fn engine(&self) -> &str {
         "candle"
@@ -141,35 +112,15 @@ impl SentenceEncoder for CandleEncoder {
             .tokenizer
             .encode_batch(texts.to_vec(), true)
             .map_err(|e| LabelerError::Tokenizer(e.to_string()))?;
-        let mut order: Vec<usize> = (0..texts.len()).collect();
-        order.sort_by_key(|&i| std::cmp::Reverse(enc[i].get_ids().len()));
-        let lens: Vec<usize> = order.iter().map(|&i| enc[i].get_ids().len()).collect();
+        let lens: Vec<usize> = enc.iter().map(|e| e.get_ids().len()).collect();
         let mut out = vec![Vec::new(); texts.len()];
-        for (a, b) in length_buckets(&lens, CALL_OVERHEAD_TOKENS) {
-            let rows: Vec<&[u32]> = order[a..b].iter().map(|&i| enc[i].get_ids()).collect();
+        for group in length_groups(&lens, CALL_OVERHEAD_TOKENS) {
+            let rows: Vec<&[u32]> = group.iter().map(|&i| enc[i].get_ids()).collect();
             let emb: Vec<Vec<f32>> = self.forward(&rows)?.to_vec2()?;
-            for (&i, e) in order[a..b].iter().zip(emb) {
+            for (&i, e) in group.iter().zip(emb) {
                 out[i] = e;
             }
         }
         Ok(out)
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::length_buckets;
-
-    #[test]
-    fn buckets_cover_all_rows_and_split_when_padding_dominates() {
-        assert!(length_buckets(&[], 10).is_empty());
-        assert_eq!(length_buckets(&[5, 5, 5], 10), vec![(0, 3)]);
-        // One long row and many short ones: padding the short rows to 100 costs far more than
-        // a second call.
-        let lens = [100, 8, 8, 8, 8, 8, 8, 8, 8];
-        let b = length_buckets(&lens, 10);
-        assert_eq!(b, vec![(0, 1), (1, 9)]);
-        // With a huge per-call cost everything goes into one call.
-        assert_eq!(length_buckets(&lens, 10_000), vec![(0, 9)]);
     }
 }

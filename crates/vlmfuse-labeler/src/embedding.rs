@@ -611,4 +611,14 @@ impl BlockingLabeler for EmbeddingLabeler {
     fn label_batch_blocking(&self, texts: &[&str]) -> Result<Vec<LabelerOutput>, LabelerError> {
         self.inner.label_batch(texts)
     }
+
+    /// One pass of milliseconds: not worth stopping halfway, and splitting it per text would
+    /// give up the single encoder call.
+    fn label_batch_cancellable(
+        &self,
+        texts: &[&str],
+        _cancel: &std::sync::atomic::AtomicBool,
+    ) -> Result<Vec<LabelerOutput>, LabelerError> {
+        self.inner.label_batch(texts)
+    }
 }

@@ -19,6 +19,7 @@ use vlmfuse_ort::ort::session::{Session, SessionInputValue};
 use vlmfuse_ort::ort::value::{TensorElementType, TensorRef};
 use vlmfuse_ort::{describe_outlets, OrtError, SessionOptions};
 
+use crate::encoder::length_groups;
 use crate::{LabelerError, SentenceEncoder};
 
 /// Model files tried in order when none is named.
@@ -260,37 +261,6 @@ impl SentenceEncoder for OnnxSentenceEncoder {
 /// MiniLM is about that of 16 tokens).
 const RUN_OVERHEAD_TOKENS: usize = 16;
 
-/// Groups of text indices, each group to be padded to its longest member: indices sorted by
-/// length, cut where the padded cost `size × longest` plus `overhead` per group is smallest
-/// (exact, by dynamic programming over the sorted lengths; rounds have tens of texts).
-fn length_groups(lens: &[usize], overhead: usize) -> Vec<Vec<usize>> {
-    let mut order: Vec<usize> = (0..lens.len()).collect();
-    order.sort_by_key(|&i| lens[i]);
-    let n = order.len();
-    // best[j]: cheapest cost of the first j sorted texts; cut[j]: where its last group starts.
-    let mut best = vec![usize::MAX; n + 1];
-    let mut cut = vec![0; n + 1];
-    best[0] = 0;
-    for j in 1..=n {
-        let longest = lens[order[j - 1]];
-        for i in 0..j {
-            let c = best[i] + (j - i) * longest + overhead;
-            if c < best[j] {
-                best[j] = c;
-                cut[j] = i;
-            }
-        }
-    }
-    let mut groups = Vec::new();
-    let mut j = n;
-    while j > 0 {
-        groups.push(order[cut[j]..j].to_vec());
-        j = cut[j];
-    }
-    groups.reverse();
-    groups
-}
-
 impl OnnxSentenceEncoder {
     /// One run over texts padded to the longest of them; unit embeddings in order.
     fn run_group(&self, enc: &[&Encoding]) -> Result<Vec<Vec<f32>>, LabelerError> {
@@ -449,20 +419,6 @@ fn find_tokenizer(dir: &Path, model: &Path) -> Result<PathBuf, LabelerError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn length_groups_cover_every_text_once_and_cut_where_padding_costs() {
-        // Lengths 3,3,4 and 20,21: two groups beat one (5 x 21 = 105 vs 12 + 42 + overhead).
-        let g = length_groups(&[20, 3, 4, 21, 3], 16);
-        assert_eq!(g, vec![vec![1, 4, 2], vec![0, 3]]);
-        // A huge overhead keeps one run.
-        assert_eq!(length_groups(&[20, 3, 4], 1000).len(), 1);
-        let lens: Vec<usize> = (0..40).map(|i| (i * 7919) % 37 + 2).collect();
-        let mut seen: Vec<usize> = length_groups(&lens, 16).concat();
-        seen.sort();
-        assert_eq!(seen, (0..40).collect::<Vec<_>>());
-        assert!(length_groups(&[], 16).is_empty());
-    }
 
     #[test]
     fn pooling_ignores_padding_and_normalises() {

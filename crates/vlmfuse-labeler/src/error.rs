@@ -54,6 +54,9 @@ pub enum LabelerError {
     Io(#[from] std::io::Error),
     #[error("internal error: {0}")]
     Internal(String),
+    /// The caller gave up (its timeout passed, the client left) and the work stopped early.
+    #[error("labelling cancelled: the caller no longer waits")]
+    Cancelled,
 }
 
 impl LabelerError {
@@ -69,7 +72,7 @@ impl LabelerError {
             LabelerError::Backend(_) => LabelerErrorKind::Internal,
             LabelerError::BadAnswer { .. } => LabelerErrorKind::BadAnswer,
             LabelerError::Io(_) => LabelerErrorKind::Io,
-            LabelerError::Internal(_) => LabelerErrorKind::Internal,
+            LabelerError::Internal(_) | LabelerError::Cancelled => LabelerErrorKind::Internal,
         }
     }
 }

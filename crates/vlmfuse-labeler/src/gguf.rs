@@ -20,6 +20,7 @@ use crate::{BlockingLabeler, Evidence, EvidenceSource, LabelerError, LabelerOutp
 use candle_core::quantized::gguf_file;
 use candle_core::Device;
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
 #[derive(Debug, Clone)]
@@ -227,13 +228,13 @@ impl GgufLabeler {
 
     /// Generates the label list for one answer (blocking).
     pub fn generate(&self, text: &str) -> Result<Generation, LabelerError> {
-        self.inner.generate(text, true)
+        self.inner.generate(text, true, &AtomicBool::new(false))
     }
 
     /// As [`GgufLabeler::generate`], never using the cached system prompt; exists to check
     /// that the cached path gives the same answer.
     pub fn generate_uncached(&self, text: &str) -> Result<Generation, LabelerError> {
-        self.inner.generate(text, false)
+        self.inner.generate(text, false, &AtomicBool::new(false))
     }
 }
 
@@ -284,7 +285,14 @@ impl Inner {
         Ok(())
     }
 
-    fn generate(&self, text: &str, use_prefix: bool) -> Result<Generation, LabelerError> {
+    /// Greedy constrained generation; stops with [`LabelerError::Cancelled`] at the next token
+    /// once `cancel` is set.
+    fn generate(
+        &self,
+        text: &str,
+        use_prefix: bool,
+        cancel: &AtomicBool,
+    ) -> Result<Generation, LabelerError> {
         let prompt = self.render(text)?;
         let ids = self.tok.encode_prompt(&prompt)?;
         let mut guard = self.model.lock().map_err(poisoned)?;
@@ -341,6 +349,9 @@ impl Inner {
             if state.is_done() {
                 break;
             }
+            if cancel.load(Ordering::Relaxed) {
+                return Err(LabelerError::Cancelled);
+            }
             logits = model.feed(&[id])?;
         }
         drop(guard);
@@ -353,8 +364,11 @@ impl Inner {
         })
     }
 
-    fn label(&self, text: &str) -> Result<LabelerOutput, LabelerError> {
-        let g = self.generate(text, true)?;
+    fn label(&self, text: &str, cancel: &AtomicBool) -> Result<LabelerOutput, LabelerError> {
+        if cancel.load(Ordering::Relaxed) {
+            return Err(LabelerError::Cancelled);
+        }
+        let g = self.generate(text, true, cancel)?;
         let n = self.ontology.len();
         let mut scores = vec![0f32; n];
         let mut on = vec![false; n];
@@ -388,6 +402,15 @@ impl BlockingLabeler for GgufLabeler {
     }
 
     fn label_blocking(&self, text: &str) -> Result<LabelerOutput, LabelerError> {
-        self.inner.label(text)
+        self.inner.label(text, &AtomicBool::new(false))
+    }
+
+    /// Generation takes seconds per answer on CPU: an abandoned round stops at its next token.
+    fn label_batch_cancellable(
+        &self,
+        texts: &[&str],
+        cancel: &AtomicBool,
+    ) -> Result<Vec<LabelerOutput>, LabelerError> {
+        texts.iter().map(|t| self.inner.label(t, cancel)).collect()
     }
 }

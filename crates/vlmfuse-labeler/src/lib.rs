@@ -43,6 +43,7 @@ pub use vlmfuse_core::{Label, Ontology, OntologyError};
 
 use futures::future::BoxFuture;
 use serde::{Deserialize, Serialize};
+use std::sync::atomic::{AtomicBool, Ordering};
 
 /// The score one label got for one text. What the number means depends on the backend
 /// (cosine similarity, yes-probability, 0/1 for an LLM), so only compare scores within a backend.
@@ -169,6 +170,26 @@ pub trait BlockingLabeler: Send + Sync + 'static {
     fn label_batch_blocking(&self, texts: &[&str]) -> Result<Vec<LabelerOutput>, LabelerError> {
         texts.iter().map(|t| self.label_blocking(t)).collect()
     }
+
+    /// As [`BlockingLabeler::label_batch_blocking`], stopping with [`LabelerError::Cancelled`]
+    /// once `cancel` is set (the service's adapter sets it when the caller gives up), so that an
+    /// abandoned round does not hold the worker. The default checks between texts; a labeler
+    /// that batches all texts in one fast pass may ignore it, and a slow one (token-by-token
+    /// generation) checks at every step.
+    fn label_batch_cancellable(
+        &self,
+        texts: &[&str],
+        cancel: &AtomicBool,
+    ) -> Result<Vec<LabelerOutput>, LabelerError> {
+        let mut out = Vec::with_capacity(texts.len());
+        for t in texts {
+            if cancel.load(Ordering::Relaxed) {
+                return Err(LabelerError::Cancelled);
+            }
+            out.push(self.label_blocking(t)?);
+        }
+        Ok(out)
+    }
 }
 
 impl<B: BlockingLabeler + ?Sized> Labeler for BackendPool<B> {
@@ -178,7 +199,14 @@ impl<B: BlockingLabeler + ?Sized> Labeler for BackendPool<B> {
 
     fn label<'a>(&'a self, text: &'a str) -> BoxFuture<'a, Result<LabelerOutput, LabelerError>> {
         let text = text.to_string();
-        Box::pin(async move { self.call(move |b, _| b.label_blocking(&text)).await? })
+        Box::pin(async move {
+            self.call(move |b, cancel| {
+                b.label_batch_cancellable(&[&text], cancel)?
+                    .pop()
+                    .ok_or_else(|| LabelerError::Internal("no output for the text".into()))
+            })
+            .await?
+        })
     }
 
     /// One pool call for the whole round, so that the backend's batching (one encoder pass)
@@ -189,11 +217,63 @@ impl<B: BlockingLabeler + ?Sized> Labeler for BackendPool<B> {
     ) -> BoxFuture<'a, Result<Vec<LabelerOutput>, LabelerError>> {
         let texts: Vec<String> = texts.iter().map(|t| t.to_string()).collect();
         Box::pin(async move {
-            self.call(move |b, _| {
+            self.call(move |b, cancel| {
                 let refs: Vec<&str> = texts.iter().map(String::as_str).collect();
-                b.label_batch_blocking(&refs)
+                b.label_batch_cancellable(&refs, cancel)
             })
             .await?
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::AtomicUsize;
+    use std::sync::Arc;
+
+    /// Counts its calls and cancels the round after the first one, as a caller giving up would.
+    struct Slow {
+        calls: AtomicUsize,
+        cancel_after_first: Arc<AtomicBool>,
+    }
+
+    impl BlockingLabeler for Slow {
+        fn name(&self) -> &str {
+            "slow"
+        }
+        fn label_blocking(&self, _text: &str) -> Result<LabelerOutput, LabelerError> {
+            self.calls.fetch_add(1, Ordering::SeqCst);
+            self.cancel_after_first.store(true, Ordering::SeqCst);
+            Ok(LabelerOutput {
+                labels: Vec::new(),
+                scores: Vec::new(),
+                evidence: Vec::new(),
+            })
+        }
+    }
+
+    #[test]
+    fn a_cancelled_round_stops_between_texts() {
+        let cancel = Arc::new(AtomicBool::new(false));
+        let l = Slow {
+            calls: AtomicUsize::new(0),
+            cancel_after_first: cancel.clone(),
+        };
+        let r = l.label_batch_cancellable(&["a", "b", "c"], &cancel);
+        assert!(matches!(r, Err(LabelerError::Cancelled)), "{r:?}");
+        assert_eq!(l.calls.load(Ordering::SeqCst), 1);
+        // Not cancelled: every text, in order.
+        let l = Slow {
+            calls: AtomicUsize::new(0),
+            cancel_after_first: Arc::new(AtomicBool::new(false)),
+        };
+        let never = AtomicBool::new(false);
+        assert_eq!(
+            l.label_batch_cancellable(&["a", "b", "c"], &never)
+                .unwrap()
+                .len(),
+            3
+        );
     }
 }

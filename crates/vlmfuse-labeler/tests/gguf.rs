@@ -248,6 +248,25 @@ fn every_family_labels_end_to_end_with_valid_output() {
     }
 }
 
+/// A round the caller gave up on stops at the next token instead of holding the worker.
+#[test]
+fn a_cancelled_round_stops_generating() {
+    let dir = tempfile::tempdir().unwrap();
+    let l = GgufLabeler::load(
+        Ontology::default_driving(),
+        GgufConfig::new(tiny(dir.path(), Family::Qwen3, true)),
+    )
+    .unwrap();
+    let r = l.label_batch_cancellable(&ANSWERS, &std::sync::atomic::AtomicBool::new(true));
+    assert!(
+        matches!(r, Err(vlmfuse_labeler::LabelerError::Cancelled)),
+        "{r:?}"
+    );
+    let never = std::sync::atomic::AtomicBool::new(false);
+    let all = l.label_batch_cancellable(&ANSWERS, &never).unwrap();
+    assert_eq!(all, l.label_batch_blocking(&ANSWERS).unwrap());
+}
+
 #[test]
 fn answers_cannot_inject_control_tokens() {
     let dir = tempfile::tempdir().unwrap();

@@ -148,7 +148,7 @@ pub fn per_label_f1(truth: &[Vec<bool>], pred: &[Vec<bool>]) -> Vec<f64> {
 }
 
 /// Per-label F1 for one column of scores at a threshold.
-fn label_f1(scores: &[f32], truth: &[bool], t: f32) -> f64 {
+pub fn label_f1(scores: &[f32], truth: &[bool], t: f32) -> f64 {
     let (mut tp, mut fp, mut fnn) = (0, 0, 0);
     for (&s, &y) in scores.iter().zip(truth) {
         match (y, s >= t) {

@@ -9,7 +9,7 @@ use crate::config::{Config, ServeArgs};
 use crate::wire::LabelOut;
 use anyhow::{bail, Context};
 use clap::Args;
-use serde_json::{json, Map, Value};
+use serde_json::Value;
 use std::io::{IsTerminal, Read, Write};
 use std::path::PathBuf;
 
@@ -38,6 +38,18 @@ pub struct LabelArgs {
     /// Hide the progress bar.
     #[arg(long)]
     pub quiet: bool,
+}
+
+/// A `--json` output line: the answer's id and line (when it has them), then `/v1/label`'s
+/// result, serialised directly so that the scores stay in ontology order.
+#[derive(serde::Serialize)]
+struct JsonRow<'a> {
+    #[serde(skip_serializing_if = "Option::is_none")]
+    id: Option<&'a Value>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    line: Option<usize>,
+    #[serde(flatten)]
+    out: &'a LabelOut,
 }
 
 /// One answer read from the input.
@@ -151,17 +163,12 @@ pub fn run(args: LabelArgs) -> anyhow::Result<()> {
         for (a, o) in chunk.iter().zip(outs) {
             let out = LabelOut::from(o);
             if args.json {
-                let mut v = Map::new();
-                if let Some(id) = &a.id {
-                    v.insert("id".into(), id.clone());
-                }
-                if args.jsonl {
-                    v.insert("line".into(), json!(a.line));
-                }
-                if let Value::Object(o) = serde_json::to_value(&out)? {
-                    v.extend(o);
-                }
-                writeln!(stdout, "{}", Value::Object(v))?;
+                let row = JsonRow {
+                    id: a.id.as_ref(),
+                    line: args.jsonl.then_some(a.line),
+                    out: &out,
+                };
+                writeln!(stdout, "{}", serde_json::to_string(&row)?)?;
             } else {
                 write_readable(&mut stdout, a, &out, args.jsonl)?;
             }
@@ -226,6 +233,7 @@ fn write_readable(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use serde_json::json;
 
     fn args(jsonl: bool) -> LabelArgs {
         LabelArgs {

@@ -26,7 +26,7 @@ pub struct Pipeline {
     /// them and names them in every response's `failed`.
     pub unloaded_reporters: Vec<(String, String)>,
     /// Without a clip pipeline the labeler is not loaded at startup; `/v1/label` loads it here.
-    lazy_labeler: Option<LazyLabeler>,
+    lazy_labeler: Option<Arc<LazyLabeler>>,
 }
 
 /// Everything a labeler is built from: the `[labeler]` table, the ontology (with the configured
@@ -78,26 +78,37 @@ impl Pipeline {
                 .unwrap_or_else(|| "labeler: not loaded".into());
             return Err(LabelerUnavailable(why));
         };
-        lazy.cell
-            .get_or_try_init(|| async {
-                let spec = lazy.spec.clone();
-                let t0 = std::time::Instant::now();
-                let l = tokio::task::spawn_blocking(move || spec.load())
-                    .await
-                    .map_err(|e| LabelerUnavailable(format!("labeler: load panicked: {e}")))?
-                    .map_err(|e| {
-                        tracing::error!("labeler not loaded: {e:#}");
-                        LabelerUnavailable(format!("labeler: {e:#}"))
-                    })?;
-                tracing::info!(
-                    labeler = l.name(),
-                    secs = t0.elapsed().as_secs_f64(),
-                    "labeler loaded on first use"
-                );
-                Ok(l)
-            })
-            .await
-            .cloned()
+        if let Some(l) = lazy.cell.get() {
+            return Ok(l.clone());
+        }
+        // The load runs in its own task: a request that times out (a big model loads for longer
+        // than a request may take) leaves it running, and the next request finds it done
+        // instead of starting it again.
+        let lazy = lazy.clone();
+        tokio::spawn(async move {
+            lazy.cell
+                .get_or_try_init(|| async {
+                    let spec = lazy.spec.clone();
+                    let t0 = std::time::Instant::now();
+                    let l = tokio::task::spawn_blocking(move || spec.load())
+                        .await
+                        .map_err(|e| LabelerUnavailable(format!("labeler: load panicked: {e}")))?
+                        .map_err(|e| {
+                            tracing::error!("labeler not loaded: {e:#}");
+                            LabelerUnavailable(format!("labeler: {e:#}"))
+                        })?;
+                    tracing::info!(
+                        labeler = l.name(),
+                        secs = t0.elapsed().as_secs_f64(),
+                        "labeler loaded on first use"
+                    );
+                    Ok(l)
+                })
+                .await
+                .cloned()
+        })
+        .await
+        .map_err(|e| LabelerUnavailable(format!("labeler: load failed: {e}")))?
     }
 
     /// Loads every configured component; blocking loads run on the blocking pool, in parallel.
@@ -227,10 +238,10 @@ impl Pipeline {
                      it on first use)"
                         .into(),
                 );
-                p.lazy_labeler = Some(LazyLabeler {
+                p.lazy_labeler = Some(Arc::new(LazyLabeler {
                     spec,
                     cell: tokio::sync::OnceCell::new(),
-                });
+                }));
             }
             Some(task) => match task.await {
                 Ok(Ok(l)) => {

@@ -5,17 +5,9 @@ use crate::support::BIN;
 use serde_json::Value;
 use std::io::Write;
 use std::process::{Command, Stdio};
-use vlmfuse_testkit::assets::{ensure_assets, AssetsUnavailable};
 
 fn have_assets() -> bool {
-    match ensure_assets() {
-        Ok(_) => true,
-        Err(AssetsUnavailable::RegistryUnreachable(why)) => {
-            eprintln!("SKIPPED label_cli: model assets unavailable: {why}");
-            false
-        }
-        Err(e) => panic!("{e}"),
-    }
+    vlmfuse_testkit::assets::assets_or_skip("label_cli").is_some()
 }
 
 #[test]

@@ -4,7 +4,7 @@
 use crate::support::TestApp;
 use serde_json::{json, Value};
 use vlmfuse_labeler::LabelerOutput;
-use vlmfuse_testkit::assets::{ensure_assets, AssetPaths, AssetsUnavailable};
+use vlmfuse_testkit::assets::{assets_or_skip, AssetPaths};
 use vlmfuse_testkit::labeler_eval::{
     default_dataset_path, eval_embedding_labeler, label_in_rounds, load_dataset, test_split,
     ROUND_ANSWERS,
@@ -14,14 +14,7 @@ use vlmfuse_testkit::server::{FakeOpenAi, LABELER_LABELS, LABELER_MODEL};
 const SHIPPED: &str = include_str!("../../../../config/default.toml");
 
 fn assets(test: &str) -> Option<AssetPaths> {
-    match ensure_assets() {
-        Ok(a) => Some(a),
-        Err(AssetsUnavailable::RegistryUnreachable(why)) => {
-            eprintln!("SKIPPED {test}: model assets unavailable: {why}");
-            None
-        }
-        Err(e) => panic!("{e}"),
-    }
+    assets_or_skip(test)
 }
 
 /// The shipped configuration with a clip pipeline (one remote reporter), so that the labeler is
