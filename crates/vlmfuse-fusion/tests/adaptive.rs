@@ -8,17 +8,16 @@ mod common;
 use common::Lcg;
 use vlmfuse_fusion::{Engine, FusionConfig, Inference, LabelledRound, Method, Ontology, Round};
 
+/// One event of a stream: context, presence, reports `n * L`, and the truth if labelled.
+type Event = (Vec<f64>, Vec<bool>, Vec<u8>, Option<Vec<u8>>);
+
 fn names() -> Vec<String> {
     vec!["a".into(), "b".into(), "c".into()]
 }
 
 /// Events of a synthetic stream: each round is observed when fused, and two in three are
 /// labelled right after.
-fn stream(
-    seed: u64,
-    rounds: usize,
-    l: usize,
-) -> Vec<(Vec<f64>, Vec<bool>, Vec<u8>, Option<Vec<u8>>)> {
+fn stream(seed: u64, rounds: usize, l: usize) -> Vec<Event> {
     let mut g = Lcg(seed);
     (0..rounds)
         .map(|t| {
@@ -38,10 +37,7 @@ fn stream(
 
 /// Runs the stream through a fresh engine the way the service does (infer, observe, credit,
 /// apply) and returns the engine and every inference.
-fn run(
-    cfg: &FusionConfig,
-    events: &[(Vec<f64>, Vec<bool>, Vec<u8>, Option<Vec<u8>>)],
-) -> (Engine, Vec<Inference>) {
+fn run(cfg: &FusionConfig, events: &[Event]) -> (Engine, Vec<Inference>) {
     let mut e = Engine::new(cfg.clone(), Ontology::paper(), names()).unwrap();
     let mut infs = Vec::new();
     for (t, (ctx, present, reports, y)) in events.iter().enumerate() {

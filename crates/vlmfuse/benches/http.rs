@@ -68,7 +68,7 @@ fn prefill(dir: &std::path::Path, bank: u64) {
         fbs.push(StoredFeedback {
             seq,
             labelled_order: seq,
-            rounds_before: bank as u64,
+            rounds_before: bank,
             truth,
             outcome: o,
         });

@@ -86,6 +86,8 @@ impl Acc {
 }
 
 /// Solves `h x = g` for a symmetric positive definite 3x3 `h` (Cholesky).
+// Index loops are the textbook form of the factorisation and easier to check against it.
+#[allow(clippy::needless_range_loop)]
 fn solve3(h: [[f64; 3]; 3], g: [f64; 3]) -> Option<[f64; 3]> {
     let mut l = [[0.0f64; 3]; 3];
     for i in 0..3 {

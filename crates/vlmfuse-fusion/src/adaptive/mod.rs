@@ -357,6 +357,9 @@ impl Engine {
     }
 
     /// Adds (`sign = 1`) or removes (`-1`) entry `pos` from the whole-pool sums.
+    // Reporter, label and pair indices address flat arrays laid out by (i, k): index loops
+    // keep that layout visible.
+    #[allow(clippy::needless_range_loop)]
     fn global_add(&mut self, pos: usize, sign: f64) {
         let wgt = sign * self.global_weight(pos);
         if wgt == 0.0 {
