@@ -188,9 +188,7 @@ impl ChatClient {
                         .headers()
                         .get(reqwest::header::RETRY_AFTER)
                         .and_then(|h| h.to_str().ok())
-                        .and_then(|s| s.trim().parse::<f64>().ok())
-                        .filter(|s| s.is_finite() && *s >= 0.0)
-                        .map(Duration::from_secs_f64);
+                        .and_then(parse_retry_after);
                     let mut msg = resp.text().await.unwrap_or_default();
                     truncate(&mut msg, 500);
                     let err = ChatError::Remote {
@@ -292,10 +290,34 @@ fn error_chain(e: &dyn std::error::Error) -> String {
     s
 }
 
+/// A `Retry-After` in seconds. Anything that is not a finite, non-negative number of seconds
+/// that a `Duration` can hold (`1e20`, `NaN`, `-1`, an HTTP date) is ignored, and the policy's
+/// own backoff applies; the policy caps whatever is returned.
+fn parse_retry_after(v: &str) -> Option<Duration> {
+    let s: f64 = v.trim().parse().ok()?;
+    Duration::try_from_secs_f64(s).ok()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use serde_json::json;
+
+    #[test]
+    fn retry_after_values_a_duration_cannot_hold_are_ignored() {
+        assert_eq!(parse_retry_after("2"), Some(Duration::from_secs(2)));
+        assert_eq!(parse_retry_after(" 0.5 "), Some(Duration::from_millis(500)));
+        for bad in [
+            "1e20",
+            "NaN",
+            "inf",
+            "-1",
+            "Wed, 21 Oct 2015 07:28:00 GMT",
+            "",
+        ] {
+            assert_eq!(parse_retry_after(bad), None, "{bad}");
+        }
+    }
 
     #[test]
     fn endpoint_forms() {

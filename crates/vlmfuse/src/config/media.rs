@@ -87,7 +87,8 @@ pub struct MediaConfig {
         required = false
     )]
     pub request_timeout_s: f64,
-    /// Where uploads are spooled; unset: the system temporary directory.
+    /// Where uploads are spooled; unset: `spool/` under the data directory. `vlmfuse-clip-*`
+    /// files in it are removed at startup (a killed run leaves its uploads behind).
     #[arg(
         long = "media-temp-dir",
         id = "media-temp-dir",

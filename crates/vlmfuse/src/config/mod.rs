@@ -203,10 +203,7 @@ impl Config {
                 && l.max_label_texts > 0,
             "limits must be at least 1"
         );
-        ensure!(
-            l.request_timeout_s.is_finite() && l.request_timeout_s > 0.0,
-            "limits.request_timeout_s must be a positive number"
-        );
+        seconds("limits.request_timeout_s", l.request_timeout_s)?;
         self.fusion.validate().map_err(anyhow::Error::msg)?;
         let m = &self.media;
         ensure!(
@@ -218,9 +215,11 @@ impl Config {
             m.max_clips > 0 && m.max_bytes > 0,
             "media.max_clips and media.max_bytes must be at least 1"
         );
+        seconds("media.request_timeout_s", m.request_timeout_s)?;
         ensure!(
-            m.request_timeout_s.is_finite() && m.request_timeout_s > 0.0,
-            "media.request_timeout_s must be a positive number"
+            m.max_duration_s.is_finite() && m.max_duration_s > 0.0,
+            "media.max_duration_s must be a positive number of seconds, got {}",
+            m.max_duration_s
         );
         let mut seen = std::collections::BTreeSet::new();
         for r in &self.reporter {
@@ -234,10 +233,15 @@ impl Config {
                 seen.insert(name.clone()),
                 "[[reporter]] {name:?} is configured twice"
             );
-            ensure!(
-                r.round_timeout_s.is_finite() && r.round_timeout_s > 0.0,
-                "[[reporter]] {name:?}: round_timeout_s must be a positive number"
-            );
+            seconds(
+                &format!("[[reporter]] {name:?}: round_timeout_s"),
+                r.round_timeout_s,
+            )?;
+        }
+        if let LabelerConfig::Openai(o) = &self.labeler {
+            if let Some(t) = o.timeout_s {
+                seconds("labeler.timeout_s", t)?;
+            }
         }
         Ok(())
     }
@@ -249,6 +253,16 @@ impl Config {
             .with_context(|| format!("listen address {:?} is not host:port", self.server.listen))
     }
 
+    /// Where `/v1/infer` spools uploads: `media.temp_dir`, else `spool/` under the data
+    /// directory. Per data directory (one server each), so the server may clear it at startup
+    /// of what a killed run left behind without touching another instance's uploads.
+    pub fn spool_dir(&self) -> std::path::PathBuf {
+        self.media
+            .temp_dir
+            .clone()
+            .unwrap_or_else(|| self.server.data_dir.join("spool"))
+    }
+
     /// Where the fetched labeler models live.
     pub fn assets(&self) -> vlmfuse_labeler::assets::AssetPaths {
         match &self.assets_dir {
@@ -257,6 +271,20 @@ impl Config {
         }
     }
 }
+
+/// A duration field: positive, finite and at most a day, so that every later
+/// `Duration::from_secs_f64` holds it (`1e20` would panic on every request, `NaN` would switch
+/// the check it feeds off). Named in the error.
+fn seconds(field: &str, v: f64) -> anyhow::Result<()> {
+    ensure!(
+        v.is_finite() && v > 0.0 && v <= MAX_SECONDS,
+        "{field} must be a number of seconds in (0, {MAX_SECONDS}], got {v}"
+    );
+    Ok(())
+}
+
+/// The longest timeout a config may set: one day.
+const MAX_SECONDS: f64 = 86_400.0;
 
 #[cfg(test)]
 mod tests;

@@ -158,3 +158,31 @@ fn the_embedder_backend_is_chosen_in_the_file_and_typos_are_refused() {
             .unwrap_err();
     assert!(format!("{err:#}").contains("backend"), "{err:#}");
 }
+
+#[test]
+fn durations_that_would_break_later_are_refused_with_the_field_named() {
+    for (toml, field) in [
+        (
+            "[limits]\nrequest_timeout_s = 1e20\n",
+            "limits.request_timeout_s",
+        ),
+        (
+            "[limits]\nrequest_timeout_s = nan\n",
+            "limits.request_timeout_s",
+        ),
+        (
+            "[media]\nrequest_timeout_s = -1.0\n",
+            "media.request_timeout_s",
+        ),
+        ("[media]\nmax_duration_s = nan\n", "media.max_duration_s"),
+        (
+            "[labeler]\nkind = \"openai\"\ntimeout_s = inf\n",
+            "labeler.timeout_s",
+        ),
+    ] {
+        let err = Config::from_toml(toml)
+            .and_then(|c| c.validate().map(|_| c))
+            .unwrap_err();
+        assert!(format!("{err:#}").contains(field), "{toml}: {err:#}");
+    }
+}

@@ -17,6 +17,7 @@ pub async fn infer(State(st): State<AppState>, req: Request) -> Result<Response,
     st.service.check_infer_ready()?;
     let mut multipart = Multipart::from_request(req, &st).await?;
     let media = &st.service.config().media;
+    let spool_dir = st.service.config().spool_dir();
     let mut uploads = Vec::new();
     while let Some(field) = multipart.next_field().await? {
         if field.name() != Some("video") {
@@ -29,7 +30,7 @@ pub async fn infer(State(st): State<AppState>, req: Request) -> Result<Response,
         if uploads.len() == media.max_clips {
             return Err(ServiceError::TooManyClips(media.max_clips).into());
         }
-        uploads.push(spool(field, media.temp_dir.as_deref(), media.max_bytes).await?);
+        uploads.push(spool(field, Some(&spool_dir), media.max_bytes).await?);
     }
     if uploads.is_empty() {
         return Err(ServiceError::Invalid(
@@ -64,7 +65,7 @@ async fn spool(
         .unwrap_or_default();
     let io = |e: std::io::Error| ApiError::Internal(format!("cannot spool the upload: {e}"));
     let mut b = tempfile::Builder::new();
-    b.prefix("vlmfuse-clip-").suffix(&suffix);
+    b.prefix(crate::service::SPOOL_PREFIX).suffix(&suffix);
     let file = match dir {
         Some(d) => b.tempfile_in(d),
         None => b.tempfile(),

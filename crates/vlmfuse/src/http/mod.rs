@@ -167,7 +167,7 @@ async fn auth(State(st): State<AppState>, req: Request, next: Next) -> Result<Re
             .headers()
             .get(AUTHORIZATION)
             .and_then(|v| v.to_str().ok())
-            .and_then(|v| v.strip_prefix("Bearer "));
+            .and_then(bearer_token);
         if !given.is_some_and(|t| constant_time_eq(t.as_bytes(), key.as_bytes())) {
             return Err(ApiError::Unauthorized);
         }
@@ -175,18 +175,48 @@ async fn auth(State(st): State<AppState>, req: Request, next: Next) -> Result<Re
     Ok(next.run(req).await)
 }
 
-/// Compares without an early exit, so response time does not reveal a matching prefix.
-fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
-    if a.len() != b.len() {
-        return false;
+/// The token of an `Authorization: Bearer <token>` header. The scheme is case-insensitive
+/// (RFC 7235 §2.1), so `bearer` and `BEARER` are accepted.
+fn bearer_token(header: &str) -> Option<&str> {
+    let (scheme, token) = header.trim().split_once(' ')?;
+    scheme
+        .eq_ignore_ascii_case("bearer")
+        .then(|| token.trim_start())
+}
+
+/// Compares in time that depends only on the key's length, never on where or whether the
+/// given token differs (no early exit on a length mismatch either), so response time reveals
+/// neither a matching prefix nor the key's length from the token's.
+fn constant_time_eq(given: &[u8], key: &[u8]) -> bool {
+    let mut diff = u8::from(given.len() != key.len());
+    for (i, &k) in key.iter().enumerate() {
+        diff |= given.get(i).copied().unwrap_or(0) ^ k;
     }
-    a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+    diff == 0
 }
 
 async fn timeout(State(secs): State<f64>, req: Request, next: Next) -> Response {
     match tokio::time::timeout(Duration::from_secs_f64(secs), next.run(req)).await {
         Ok(resp) => resp,
         Err(_) => ApiError::Timeout(secs).into_response(),
+    }
+}
+
+/// The `method` label of the request metrics: the standard methods by name, anything else
+/// folded into `other`, so that a client inventing methods cannot add series without bound.
+fn method_label(m: &axum::http::Method) -> &'static str {
+    use axum::http::Method;
+    match *m {
+        Method::GET => "GET",
+        Method::POST => "POST",
+        Method::PUT => "PUT",
+        Method::DELETE => "DELETE",
+        Method::HEAD => "HEAD",
+        Method::OPTIONS => "OPTIONS",
+        Method::PATCH => "PATCH",
+        Method::CONNECT => "CONNECT",
+        Method::TRACE => "TRACE",
+        _ => "other",
     }
 }
 
@@ -198,7 +228,7 @@ async fn track(req: Request, next: Next) -> Response {
         .get::<MatchedPath>()
         .map(|m| m.as_str().to_string())
         .unwrap_or_else(|| "unmatched".into());
-    let method = req.method().as_str().to_string();
+    let method = method_label(req.method()).to_string();
     let start = Instant::now();
     let resp = next.run(req).await;
     let status = resp.status().as_u16().to_string();

@@ -68,6 +68,25 @@ pub struct Service {
     hooks: TestHooks,
 }
 
+/// The prefix of every spooled upload; only such files are ever removed from the spool.
+pub const SPOOL_PREFIX: &str = "vlmfuse-clip-";
+
+/// Creates the spool directory and removes the uploads a killed run left in it (a clean
+/// shutdown leaves none: each upload is deleted when its request ends). Returns how many.
+fn clear_spool(dir: &std::path::Path) -> std::io::Result<usize> {
+    std::fs::create_dir_all(dir)?;
+    let mut removed = 0;
+    for entry in std::fs::read_dir(dir)? {
+        let entry = entry?;
+        let ours = entry.file_name().to_string_lossy().starts_with(SPOOL_PREFIX);
+        if ours && entry.file_type()?.is_file() {
+            std::fs::remove_file(entry.path())?;
+            removed += 1;
+        }
+    }
+    Ok(removed)
+}
+
 impl Service {
     /// Opens the store, rebuilds the engine from it, loads the clip pipeline and starts the
     /// writer. The writer thread ends once every handle to the service is dropped, after
@@ -85,6 +104,12 @@ impl Service {
         )
         .context("fusion engine")?;
         let mut store = Store::open(&cfg.server.data_dir)?;
+        let spool = cfg.spool_dir();
+        let stale = clear_spool(&spool)
+            .with_context(|| format!("upload spool directory {}", spool.display()))?;
+        if stale > 0 {
+            tracing::info!(files = stale, dir = %spool.display(), "removed uploads a previous run left behind");
+        }
         store.check_identity(&Identity {
             reporters: cfg.reporters.clone(),
             labels: cfg.ontology.ids().map(str::to_string).collect(),

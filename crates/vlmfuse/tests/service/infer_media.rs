@@ -240,3 +240,16 @@ async fn without_an_embedder_infer_is_unavailable_and_readyz_says_why() {
     );
     assert_eq!(srv.state().await["rounds"], 0);
 }
+
+/// Uploads a `kill -9` left in the spool are removed at the next start; nothing else there is.
+#[tokio::test(flavor = "multi_thread")]
+async fn uploads_left_by_a_killed_run_are_removed_at_startup() {
+    let tmp = tempfile::tempdir().unwrap();
+    let spool = tmp.path().join("data").join("spool");
+    std::fs::create_dir_all(&spool).unwrap();
+    std::fs::write(spool.join("vlmfuse-clip-abc123.mp4"), b"half an upload").unwrap();
+    std::fs::write(spool.join("notes.txt"), b"not ours").unwrap();
+    let _srv = TestApp::from_toml(tmp.path(), "reporters = [\"a\"]\n").await;
+    assert!(!spool.join("vlmfuse-clip-abc123.mp4").exists());
+    assert!(spool.join("notes.txt").exists());
+}
