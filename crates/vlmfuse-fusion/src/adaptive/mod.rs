@@ -297,10 +297,12 @@ impl Engine {
             }
         };
         let mixed = crate::engine::fixed_share(&raw, a.fixed_share);
-        // A reporter that sat the round out keeps its weight: absence says nothing about its
-        // accuracy. The coalition shares the rest in the proportions the update gave it.
+        // Under `discounted`, a reporter that sat the round out keeps its weight: absence says
+        // nothing about its accuracy, and the softmax would otherwise move it with the others'
+        // credit. The coalition shares the rest in the proportions the update gave it.
+        // (`multiplicative` is SPEC's update, kept as SPEC has it.)
         let n = w.len();
-        if coalition.len() == n || coalition.is_empty() {
+        if a.reputation != Reputation::Discounted || coalition.len() == n || coalition.is_empty() {
             return mixed;
         }
         let mut present = vec![false; n];

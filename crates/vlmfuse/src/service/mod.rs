@@ -78,7 +78,10 @@ fn clear_spool(dir: &std::path::Path) -> std::io::Result<usize> {
     let mut removed = 0;
     for entry in std::fs::read_dir(dir)? {
         let entry = entry?;
-        let ours = entry.file_name().to_string_lossy().starts_with(SPOOL_PREFIX);
+        let ours = entry
+            .file_name()
+            .to_string_lossy()
+            .starts_with(SPOOL_PREFIX);
         if ours && entry.file_type()?.is_file() {
             std::fs::remove_file(entry.path())?;
             removed += 1;

@@ -231,10 +231,25 @@ fn replay_equals_eval_and_a_kill_9_loses_nothing() {
     let mut prog = Progress::default();
     let half = rounds.len() / 2;
     assert!(replay(&srv.addr, &rounds[..half], &mut prog));
-    // Kill -9 a few milliseconds into the second half, with requests in flight.
+    // Kill -9 once the second half has begun to commit (a fixed delay raced the debug build's
+    // speed), with requests in flight.
     let pid = srv.child.id().to_string();
+    let addr = srv.addr.clone();
     let killer = std::thread::spawn(move || {
-        std::thread::sleep(std::time::Duration::from_millis(15));
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+        while std::time::Instant::now() < deadline {
+            let stored = crate::support::client()
+                .get(format!("http://{addr}/v1/state"))
+                .send()
+                .ok()
+                .and_then(|r| r.json::<Value>().ok())
+                .and_then(|v| v["rounds"].as_u64())
+                .unwrap_or(0);
+            if stored as usize > half + 2 {
+                break;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(2));
+        }
         Command::new("kill").args(["-9", &pid]).status().unwrap();
     });
     let finished = replay(&srv.addr, &rounds, &mut prog);
