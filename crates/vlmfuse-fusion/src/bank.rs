@@ -254,35 +254,21 @@ impl Bank {
         if m == 0 {
             return Vec::new();
         }
-        if n < PREFILTER_MIN || n <= 4 * m || self.mirror.len() != n * self.dim {
+        let first_pass = if n <= 4 * m {
+            None
+        } else {
+            self.approx_with_bounds(x)
+        };
+        let Some((approx, bound)) = first_pass else {
             let mut sims = Vec::new();
             self.similarities(x, &mut sims);
             return self.top(&sims, m);
-        }
-        let xq: Vec<f32> = x.iter().map(|&v| v as f32).collect();
-        let xq_err = x
-            .iter()
-            .zip(&xq)
-            .map(|(&a, &b)| (a - b as f64).powi(2))
-            .sum::<f64>()
-            .sqrt();
-        let xq_norm = xq.iter().map(|&v| (v as f64).powi(2)).sum::<f64>().sqrt();
-        let mut approx = Vec::with_capacity(n);
-        scan_f32(&self.mirror, &xq, self.dim, &mut approx);
-        // f32 arithmetic: each product and each addition rounds by at most u relative, so the
-        // sum is off by at most (d + 2) u * ||x~_j|| * ||xq||; 4d + 16 leaves a wide margin.
-        let u = f32::EPSILON as f64 / 2.0;
-        let acc = (4 * self.dim + 16) as f64 * u;
-        let bound = |j: usize| {
-            let ej = self.mirror_err[j];
-            let xn = 1.0 + ej;
-            ej + xq_err * xn + acc * xn * xq_norm + 1e-12
         };
-        let mut lo: Vec<f64> = (0..n).map(|j| approx[j] as f64 - bound(j)).collect();
+        let mut lo: Vec<f64> = (0..n).map(|j| approx[j] as f64 - bound[j]).collect();
         let (_, &mut cut, _) = lo.select_nth_unstable_by(m - 1, |a, b| b.total_cmp(a));
         let mut cand: Vec<usize> = Vec::with_capacity(4 * m);
         for (j, &a) in approx.iter().enumerate() {
-            if a as f64 + bound(j) >= cut {
+            if a as f64 + bound[j] >= cut {
                 cand.push(j);
             }
         }
@@ -308,6 +294,8 @@ impl Bank {
         let xq_norm = xq.iter().map(|&v| (v as f64).powi(2)).sum::<f64>().sqrt();
         let mut approx = Vec::with_capacity(n);
         scan_f32(&self.mirror, &xq, self.dim, &mut approx);
+        // f32 arithmetic: each product and each addition rounds by at most u relative, so the
+        // sum is off by at most (d + 2) u * ||x~_j|| * ||xq||; 4d + 16 leaves a wide margin.
         let u = f32::EPSILON as f64 / 2.0;
         let acc = (4 * self.dim + 16) as f64 * u;
         let bounds = self
