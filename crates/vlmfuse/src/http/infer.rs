@@ -4,9 +4,12 @@
 use super::error::ApiError;
 use super::AppState;
 use crate::service::{stage, ServiceError, Upload};
+use axum::body::{Body, Bytes};
 use axum::extract::multipart::Field;
 use axum::extract::{FromRequest, Multipart, Request, State};
+use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
+use futures::StreamExt;
 use std::time::Instant;
 use tokio::io::AsyncWriteExt;
 use vlmfuse_media::MediaError;
@@ -15,6 +18,7 @@ use vlmfuse_media::MediaError;
 pub async fn infer(State(st): State<AppState>, req: Request) -> Result<Response, ApiError> {
     // Refuse before reading a byte of the upload when a component is missing.
     st.service.check_infer_ready()?;
+    let req = refuse_long_preamble(req).await?;
     let mut multipart = Multipart::from_request(req, &st).await?;
     let media = &st.service.config().media;
     let spool_dir = st.service.config().spool_dir();
@@ -88,4 +92,77 @@ async fn spool(
         bytes,
         upload_ms: stage("upload", start),
     })
+}
+
+/// Most bytes a multipart body may carry before its first boundary. RFC 2046 allows a preamble
+/// that parsers ignore, and no client has a reason to send more than a line of it (browsers and
+/// curl send none). The parser buffers everything before the first boundary and rescans it as it
+/// grows, so without this a 200 MiB preamble held 200 MB per request and took minutes of CPU.
+/// A constant, not a config field: no legitimate upload comes near it.
+pub const MAX_MULTIPART_PREAMBLE: usize = 8 * 1024;
+
+/// The `boundary` parameter of a `multipart/*` content type (quoted or not).
+fn boundary_of(req: &Request) -> Option<String> {
+    let ct = req.headers().get(header::CONTENT_TYPE)?.to_str().ok()?;
+    let (mime, params) = ct.split_once(';')?;
+    if !mime.trim().to_ascii_lowercase().starts_with("multipart/") {
+        return None;
+    }
+    params.split(';').find_map(|p| {
+        let (k, v) = p.split_once('=')?;
+        k.trim()
+            .eq_ignore_ascii_case("boundary")
+            .then(|| v.trim().trim_matches('"').to_string())
+            .filter(|b| !b.is_empty())
+    })
+}
+
+/// Reads the body up to its first boundary and refuses it (400 `multipart_preamble_too_long`)
+/// once more than [`MAX_MULTIPART_PREAMBLE`] bytes came without one; the bytes read are put back
+/// in front of the rest of the stream for the multipart parser. Without a parsable boundary the
+/// request passes unchanged and the parser's own rejection names the problem.
+async fn refuse_long_preamble(req: Request) -> Result<Request, ApiError> {
+    let Some(boundary) = boundary_of(&req) else {
+        return Ok(req);
+    };
+    let delimiter = format!("--{boundary}").into_bytes();
+    // The delimiter must start within the allowed preamble.
+    let window = MAX_MULTIPART_PREAMBLE + delimiter.len();
+    let (parts, body) = req.into_parts();
+    let mut stream = body.into_data_stream();
+    let mut head: Vec<u8> = Vec::new();
+    loop {
+        let searched = head.len().min(window);
+        if head[..searched]
+            .windows(delimiter.len())
+            .any(|w| w == delimiter.as_slice())
+        {
+            break;
+        }
+        if head.len() >= window {
+            return Err(ApiError::Body {
+                status: StatusCode::BAD_REQUEST,
+                kind: "multipart_preamble_too_long",
+                message: format!(
+                    "more than {MAX_MULTIPART_PREAMBLE} bytes before the first multipart boundary \
+                     \"--{boundary}\": a multipart/form-data body starts with its boundary"
+                ),
+            });
+        }
+        match stream.next().await {
+            Some(Ok(chunk)) => head.extend_from_slice(&chunk),
+            Some(Err(e)) => {
+                return Err(ApiError::Body {
+                    status: StatusCode::BAD_REQUEST,
+                    kind: "invalid_multipart",
+                    message: format!("cannot read the request body: {e}"),
+                })
+            }
+            // The parser says what an unterminated body is.
+            None => break,
+        }
+    }
+    let rest =
+        futures::stream::once(async move { Ok::<_, axum::Error>(Bytes::from(head)) }).chain(stream);
+    Ok(Request::from_parts(parts, Body::from_stream(rest)))
 }
