@@ -107,12 +107,12 @@ fn label_texts(body: &Value) -> Result<(Vec<String>, bool), ServiceError> {
 
 /// `GET /v1/state`.
 pub async fn state(State(st): State<AppState>) -> Response {
-    axum::Json(st.service.state()).into_response()
+    axum::Json(st.service.state().await).into_response()
 }
 
 /// `GET /v1/ontology`.
 pub async fn ontology(State(st): State<AppState>) -> Response {
-    axum::Json(st.service.ontology()).into_response()
+    axum::Json(st.service.ontology().await).into_response()
 }
 
 /// `GET /healthz`: the process answers.

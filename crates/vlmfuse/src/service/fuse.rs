@@ -45,12 +45,16 @@ impl Service {
     ) -> Result<Vec<FuseOut>, ServiceError> {
         let shared = self.shared.clone();
         let metrics = self.metrics.clone();
+        let hold = self.hooks.fuse_hold();
         // Inference is CPU work (about a millisecond at a 10k bank): off the async threads,
         // under a read lock only, so concurrent fuse requests run in parallel and feedback waits
         // for none.
         let (outs, new_rounds) = tokio::task::spawn_blocking(move || {
             metrics.scope(|| {
-                let eng = shared.engine.read().unwrap_or_else(|e| e.into_inner());
+                let eng = shared.engine.blocking_read();
+                if !hold.is_zero() {
+                    std::thread::sleep(hold);
+                }
                 let mut dim = eng.dim();
                 let mut parsed = Vec::with_capacity(records.len());
                 for (idx, (rec, request)) in records.into_iter().enumerate() {
@@ -121,7 +125,7 @@ impl Service {
         labels: &[String],
     ) -> Result<(FeedbackOut, bool), ServiceError> {
         let truth = {
-            let eng = self.shared.engine.read().unwrap_or_else(|e| e.into_inner());
+            let eng = self.shared.engine.read().await;
             eng.encode_truth(labels)?
         };
         let (tx, rx) = oneshot::channel();
@@ -133,7 +137,7 @@ impl Service {
             reply: tx,
         })?;
         let done: FeedbackDone = rx.await.map_err(|_| ServiceError::WriterStopped)??;
-        let eng = self.shared.engine.read().unwrap_or_else(|e| e.into_inner());
+        let eng = self.shared.engine.read().await;
         Ok((feedback_out(&eng, &done), done.repeated))
     }
 }

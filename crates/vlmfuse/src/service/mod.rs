@@ -4,8 +4,9 @@
 //! [`crate::wire`] or a [`ServiceError`]. The HTTP layer (`crate::http`) reads requests, calls
 //! these methods and maps errors to statuses.
 //!
-//! Reads (`fuse` inference, `state`) take the engine's read lock; the writer ([`writer`]) is the
-//! only code that takes the write lock. The database (vlmfuse-store) is the truth the engine is
+//! Reads (`fuse` inference, `state`) take the engine's read lock (tokio's: an async path waits
+//! for it without holding a runtime thread); the writer ([`writer`]) is the only code that takes
+//! the write lock. The database (vlmfuse-store) is the truth the engine is
 //! rebuilt from on start.
 
 mod error;
@@ -26,7 +27,7 @@ use crate::config::Config;
 use crate::telemetry::Metrics;
 use crate::wire::{state_out, OntologyOut, StateOut};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{mpsc, Arc, Mutex, RwLock};
+use std::sync::{mpsc, Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 use vlmfuse_fusion::Engine;
@@ -38,6 +39,7 @@ use writer::{Cmd, Shared};
 #[derive(Default)]
 pub struct TestHooks {
     fuse_delay_ms: AtomicU64,
+    fuse_hold_ms: AtomicU64,
 }
 
 impl TestHooks {
@@ -49,6 +51,16 @@ impl TestHooks {
 
     fn fuse_delay(&self) -> Duration {
         Duration::from_millis(self.fuse_delay_ms.load(Ordering::Relaxed))
+    }
+
+    /// Every `/v1/fuse` holds the engine's read lock this much longer (a long batch).
+    pub fn set_fuse_hold(&self, d: Duration) {
+        self.fuse_hold_ms
+            .store(d.as_millis() as u64, Ordering::Relaxed);
+    }
+
+    fn fuse_hold(&self) -> Duration {
+        Duration::from_millis(self.fuse_hold_ms.load(Ordering::Relaxed))
     }
 }
 
@@ -138,7 +150,7 @@ impl Service {
         );
         metrics.scope(|| writer::publish_gauges(&engine));
         let shared = Arc::new(Shared {
-            engine: RwLock::new(engine),
+            engine: tokio::sync::RwLock::new(engine),
             rounds: AtomicU64::new(loaded.next_seq),
             broken: AtomicBool::new(false),
             broken_reason: Mutex::new(None),
@@ -232,14 +244,14 @@ impl Service {
     }
 
     /// `GET /v1/state`.
-    pub fn state(&self) -> StateOut {
-        let eng = self.shared.engine.read().unwrap_or_else(|e| e.into_inner());
+    pub async fn state(&self) -> StateOut {
+        let eng = self.shared.engine.read().await;
         state_out(&eng, self.shared.rounds.load(Ordering::SeqCst))
     }
 
     /// `GET /v1/ontology`.
-    pub fn ontology(&self) -> OntologyOut {
-        let eng = self.shared.engine.read().unwrap_or_else(|e| e.into_inner());
+    pub async fn ontology(&self) -> OntologyOut {
+        let eng = self.shared.engine.read().await;
         OntologyOut {
             labels: eng.ontology().labels().to_vec(),
         }

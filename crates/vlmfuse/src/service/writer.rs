@@ -14,9 +14,10 @@ use super::ServiceError;
 use crate::telemetry::Metrics;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc;
-use std::sync::{Arc, Mutex, RwLock};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 use tokio::sync::oneshot;
+use tokio::sync::RwLock;
 use vlmfuse_fusion::{Engine, FusionError, LabelledRound};
 use vlmfuse_store::{parse_round_id, NewRound, Store, StoredFeedback};
 
@@ -49,6 +50,12 @@ pub struct FeedbackDone {
 
 /// What the handlers share with the writer.
 pub struct Shared {
+    /// tokio's lock, not std's: a batch fuse holds the read side for its whole inference and a
+    /// feedback then waits for the write side; with std's (writer-preferring) lock every later
+    /// `read()` blocked the runtime thread that called it, and two of them froze a 2-worker
+    /// runtime, `/healthz` included. Async paths `.read().await` (the task waits, the thread
+    /// does not); the writer thread and the blocking pool use `blocking_read`/`blocking_write`.
+    /// It is also fair (FIFO), so a stream of fuse requests cannot starve a feedback.
     pub engine: RwLock<Engine>,
     /// Rounds stored so far (the next `seq`).
     pub rounds: AtomicU64,
@@ -105,11 +112,7 @@ pub fn spawn(
 }
 
 fn run(store: &mut Store, shared: &Shared, rx: mpsc::Receiver<Cmd>) {
-    let mut dim = shared
-        .engine
-        .read()
-        .unwrap_or_else(|e| e.into_inner())
-        .dim();
+    let mut dim = shared.engine.blocking_read().dim();
     while let Ok(first) = rx.recv() {
         let mut group = vec![first];
         while group.len() < MAX_GROUP {
@@ -205,7 +208,7 @@ fn flush_inserts(
         Ok(()) => {
             if before.is_none() {
                 if let Some(d) = *dim {
-                    let mut eng = shared.engine.write().unwrap_or_else(|e| e.into_inner());
+                    let mut eng = shared.engine.blocking_write();
                     if let Err(e) = eng.fix_dim(d) {
                         shared.mark_broken(format!("engine refused the stored dimension: {e}"));
                     }
@@ -213,14 +216,9 @@ fn flush_inserts(
             }
             // The adaptive method learns from unlabelled rounds: each joins its pool now, in
             // `seq` order, which is the order a rebuild replays them in.
-            let observe = shared
-                .engine
-                .read()
-                .unwrap_or_else(|e| e.into_inner())
-                .method()
-                != vlmfuse_fusion::Method::Paper;
+            let observe = shared.engine.blocking_read().method() != vlmfuse_fusion::Method::Paper;
             if observe {
-                let mut eng = shared.engine.write().unwrap_or_else(|e| e.into_inner());
+                let mut eng = shared.engine.blocking_write();
                 for (i, r) in all.iter().enumerate() {
                     let seq = first_seq + i as u64;
                     if let Err(e) = eng.observe(seq, &r.round, &r.inference) {
@@ -275,14 +273,14 @@ fn feedback(
                 repeated: true,
             });
         }
-        let eng = shared.engine.read().unwrap_or_else(|e| e.into_inner());
+        let eng = shared.engine.blocking_read();
         return Err(ServiceError::Conflict(format!(
             "round {round_id} was already labelled {:?}; feedback is final per round",
             eng.ontology().decode(&prev.truth)
         )));
     }
     let (outcome, labelled_order) = {
-        let eng = shared.engine.read().unwrap_or_else(|e| e.into_inner());
+        let eng = shared.engine.blocking_read();
         let o = eng.credit(
             &stored.inference.signals,
             &stored.inference.w_used,
@@ -301,7 +299,7 @@ fn feedback(
     store.insert_feedback(std::slice::from_ref(&fb))?;
     // Committed: from here the database holds the feedback, so the engine must follow.
     {
-        let mut eng = shared.engine.write().unwrap_or_else(|e| e.into_inner());
+        let mut eng = shared.engine.blocking_write();
         let lr = LabelledRound {
             seq,
             round: stored.round,

@@ -76,3 +76,79 @@ async fn a_huge_multipart_preamble_is_refused_at_once() {
         "nothing stored for the refused upload"
     );
 }
+
+/// A long batch `/v1/fuse` holds the engine's read side while a feedback waits for the write
+/// side; feedback and state requests arriving meanwhile must wait without taking a runtime
+/// thread, so `/healthz` still answers on a 2-worker runtime. (With a blocking lock the two
+/// workers sat in `read()` behind the waiting writer and nothing else ran.)
+#[test]
+fn a_long_fuse_and_waiting_feedback_do_not_freeze_the_runtime() {
+    use std::sync::Arc;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let srv = Arc::new(rt.block_on(TestApp::start(
+        &tmp.path().join("d"),
+        vlmfuse::Config::default(),
+    )));
+    let round = |i: usize| {
+        serde_json::json!({"context": [i as f64, 1.0, -0.5],
+            "reports": {"vlaad": ["brake"], "videollama2": ["brake", "stop"], "videollava": []}})
+    };
+    let ids: Vec<String> = (0..4)
+        .map(|i| {
+            let r = rt.block_on(srv.post("/v1/fuse", &round(i)));
+            assert_eq!(r.status, 200);
+            r.json()["round_id"].as_str().unwrap().to_string()
+        })
+        .collect();
+    let hold = Duration::from_secs(3);
+    srv.state.service.test_hooks().set_fuse_hold(hold);
+    let t0 = Instant::now();
+    let batch = {
+        let srv = srv.clone();
+        let body = serde_json::json!({"rounds": [round(7), round(8)]});
+        rt.spawn(async move { srv.post("/v1/fuse", &body).await.status })
+    };
+    std::thread::sleep(Duration::from_millis(200));
+    // The writer takes this one and waits for the write side behind the batch.
+    let mut waiting = Vec::new();
+    for id in &ids {
+        let srv = srv.clone();
+        let body = serde_json::json!({"round_id": id, "labels": ["brake"]});
+        waiting.push(rt.spawn(async move { srv.post("/v1/feedback", &body).await.status }));
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    for _ in 0..2 {
+        let srv = srv.clone();
+        waiting.push(rt.spawn(async move { srv.get("/v1/state").await.status }));
+    }
+    std::thread::sleep(Duration::from_millis(100));
+    let (tx, rx) = std::sync::mpsc::channel();
+    {
+        let srv = srv.clone();
+        rt.spawn(async move {
+            let _ = tx.send(srv.get("/healthz").await.status);
+        });
+    }
+    let healthz = rx.recv_timeout(Duration::from_secs(1));
+    let froze_for = t0.elapsed();
+    assert_eq!(
+        healthz,
+        Ok(200),
+        "/healthz did not answer within 1 s while the engine lock was contended"
+    );
+    assert!(
+        froze_for < hold,
+        "answered only after the batch: {froze_for:?}"
+    );
+    // Everything that waited completes once the batch is done.
+    assert_eq!(rt.block_on(batch).unwrap(), 200);
+    for w in waiting {
+        assert_eq!(rt.block_on(w).unwrap(), 200);
+    }
+    rt.shutdown_timeout(Duration::from_secs(5));
+}
