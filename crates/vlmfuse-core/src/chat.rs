@@ -147,6 +147,36 @@ impl ChatClient {
         &self.policy
     }
 
+    /// The server's `/v1/models` URL, beside the chat endpoint (the health probe's target).
+    pub fn models_endpoint(&self) -> String {
+        let base = self
+            .endpoint
+            .strip_suffix("/chat/completions")
+            .unwrap_or(&self.endpoint);
+        format!("{base}/models")
+    }
+
+    /// A health probe: `GET /v1/models` once, no retry, within `timeout`. The server is up when
+    /// it answers 2xx, or 404/405 (a server without a model listing still serves chat); a
+    /// refused connection, a timeout, a 5xx or a 401/403 (a key the server refuses) is the
+    /// one-line reason it is not.
+    pub async fn probe(&self, timeout: Duration) -> Result<(), String> {
+        let url = self.models_endpoint();
+        let mut req = self.http.get(&url).timeout(timeout);
+        if let Some(k) = &self.api_key {
+            req = req.bearer_auth(k);
+        }
+        match req.send().await {
+            Ok(r) if r.status().is_success() || matches!(r.status().as_u16(), 404 | 405) => Ok(()),
+            Ok(r) => Err(format!("GET {url}: status {}", r.status().as_u16())),
+            Err(e) if e.is_timeout() => Err(format!(
+                "GET {url}: no answer within {:.1}s",
+                timeout.as_secs_f64()
+            )),
+            Err(e) => Err(format!("GET {url}: {}", error_chain(&e))),
+        }
+    }
+
     /// Sends a chat-completions request body, retrying per the policy.
     pub async fn complete(&self, body: &Value) -> Result<ChatReply, ChatError> {
         let bytes = serde_json::to_vec(body).map_err(|e| ChatError::BadResponse {

@@ -155,6 +155,11 @@ impl OpenAiReporter {
         self.client.endpoint()
     }
 
+    /// The readiness probe: `GET /v1/models` of the base URL (see [`ChatClient::probe`]).
+    pub async fn probe(&self, timeout: Duration) -> Result<(), String> {
+        self.client.probe(timeout).await
+    }
+
     /// The JSON request for `clip`. Encoding (base64 of the video, JPEG/PNG of frames) runs on
     /// a blocking thread: it is tens of milliseconds of CPU per clip.
     pub async fn request_body(&self, clip: &ClipInput) -> Result<Value, ModelError> {

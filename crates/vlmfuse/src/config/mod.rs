@@ -204,6 +204,7 @@ impl Config {
             "limits must be at least 1"
         );
         seconds("limits.request_timeout_s", l.request_timeout_s)?;
+        seconds("server.probe_interval_s", self.server.probe_interval_s)?;
         self.fusion.validate().map_err(anyhow::Error::msg)?;
         let m = &self.media;
         ensure!(

@@ -25,6 +25,10 @@ pub struct ServerConfig {
         required = false
     )]
     pub api_key: Option<String>,
+    /// Seconds between health probes of each remote reporter (`GET /v1/models` of its base
+    /// URL); `/readyz` reports the last one. A probe waits at most this long, and 5 s.
+    #[arg(long, env = "VLMFUSE_PROBE_INTERVAL_S", required = false)]
+    pub probe_interval_s: f64,
 }
 
 impl Default for ServerConfig {
@@ -33,6 +37,7 @@ impl Default for ServerConfig {
             listen: DEFAULT_LISTEN.into(),
             data_dir: DEFAULT_DATA_DIR.into(),
             api_key: None,
+            probe_interval_s: 10.0,
         }
     }
 }

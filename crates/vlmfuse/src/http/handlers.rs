@@ -120,16 +120,16 @@ pub async fn healthz() -> Response {
     axum::Json(serde_json::json!({"status": "ok"})).into_response()
 }
 
-/// `GET /readyz`: every configured component is loaded, or a 503 that lists what is not.
-pub async fn readyz(State(st): State<AppState>) -> Result<Response, ApiError> {
-    let r = st.service.readiness()?;
-    Ok(axum::Json(serde_json::json!({
-        "status": "ready",
-        "components": r.components,
-        // /v1/infer needs an embedder, reporters and a labeler; what the config leaves out.
-        "infer": {"ready": r.infer_blockers.is_empty(), "not_ready": r.infer_blockers},
-    }))
-    .into_response())
+/// `GET /readyz`: each component's state; 503 when `/v1/infer` (if configured) cannot serve or
+/// the store refuses writes.
+pub async fn readyz(State(st): State<AppState>) -> Response {
+    let r = st.service.readiness();
+    let status = if r.ready {
+        axum::http::StatusCode::OK
+    } else {
+        axum::http::StatusCode::SERVICE_UNAVAILABLE
+    };
+    (status, axum::Json(r.body)).into_response()
 }
 
 /// `GET /metrics`: Prometheus text.

@@ -14,6 +14,7 @@ mod fuse;
 mod infer;
 mod label;
 pub mod pipeline;
+mod readiness;
 pub mod writer;
 
 pub use error::ServiceError;
@@ -22,6 +23,7 @@ pub(crate) use infer::stage;
 pub use infer::{Inferred, Upload};
 pub use label::Labelled;
 pub use pipeline::Pipeline;
+pub use readiness::Readiness;
 
 use crate::config::Config;
 use crate::telemetry::Metrics;
@@ -64,13 +66,6 @@ impl TestHooks {
     }
 }
 
-/// What `/readyz` reports when nothing is broken.
-pub struct Readiness {
-    pub components: Vec<String>,
-    /// Why `/v1/infer` cannot run (empty when it can).
-    pub infer_blockers: Vec<String>,
-}
-
 pub struct Service {
     shared: Arc<Shared>,
     tx: mpsc::Sender<Cmd>,
@@ -78,6 +73,9 @@ pub struct Service {
     pipeline: Arc<Pipeline>,
     metrics: Metrics,
     hooks: TestHooks,
+    health: Arc<readiness::Health>,
+    /// Aborts the reporter probes when the service is dropped.
+    _probes: Option<readiness::ProbeTask>,
 }
 
 /// The prefix of every spooled upload; only such files are ever removed from the spool.
@@ -167,14 +165,21 @@ impl Service {
         );
         let (tx, writer) =
             writer::spawn(store, shared.clone(), metrics.clone()).context("writer thread")?;
+        let pipeline = Arc::new(pipeline);
+        let (health, probes) = readiness::start_probes(
+            &pipeline,
+            Duration::from_secs_f64(cfg.server.probe_interval_s),
+        );
         Ok((
             Service {
                 shared,
                 tx,
                 cfg,
-                pipeline: Arc::new(pipeline),
+                pipeline,
                 metrics,
                 hooks: TestHooks::default(),
+                health,
+                _probes: probes,
             },
             writer,
         ))
@@ -203,43 +208,6 @@ impl Service {
         self.tx.send(cmd).map_err(|_| ServiceError::NotReady {
             message: "the writer has stopped".into(),
             not_ready: vec!["store: writer stopped".into()],
-        })
-    }
-
-    /// Components that are configured but not ready, each with its reason (a failed load of
-    /// the embedder, a reporter or the labeler is listed here).
-    pub fn not_ready(&self) -> Vec<String> {
-        let mut out = Vec::new();
-        if self.shared.broken.load(Ordering::SeqCst) {
-            out.push(format!("store: {}", self.shared.broken_reason()));
-        }
-        out.extend(self.pipeline.failed.iter().cloned());
-        out
-    }
-
-    /// `/readyz`: the loaded components, or what is not ready.
-    pub fn readiness(&self) -> Result<Readiness, ServiceError> {
-        let not_ready = self.not_ready();
-        if !not_ready.is_empty() {
-            return Err(ServiceError::NotReady {
-                message: format!("not ready: {}", not_ready.join("; ")),
-                not_ready,
-            });
-        }
-        let p = &self.pipeline;
-        let mut components = vec!["store".to_string(), "engine".to_string()];
-        if p.embedder.is_some() {
-            components.push("embedder".into());
-        }
-        for r in &p.reporters {
-            components.push(format!("reporter {}", r.reporter.name()));
-        }
-        if p.labeler.is_some() {
-            components.push(format!("labeler {}", p.labeler_name));
-        }
-        Ok(Readiness {
-            components,
-            infer_blockers: p.infer_blockers(),
         })
     }
 

@@ -152,3 +152,112 @@ fn a_long_fuse_and_waiting_feedback_do_not_freeze_the_runtime() {
     }
     rt.shutdown_timeout(Duration::from_secs(5));
 }
+
+async fn until<F: Fn(&Value) -> bool>(srv: &TestApp, within: Duration, f: F) -> (u16, Value) {
+    let t = Instant::now();
+    loop {
+        let r = srv.get("/readyz").await;
+        let v = r.json();
+        if f(&v) || t.elapsed() > within {
+            return (r.status, v);
+        }
+        tokio::time::sleep(Duration::from_millis(25)).await;
+    }
+}
+
+/// `/readyz` per component, with each encoder's engine; a remote reporter whose server goes
+/// down is not ready within one probe interval, and once none serves, `/readyz` is 503 with a
+/// one-line reason.
+#[tokio::test(flavor = "multi_thread")]
+async fn readyz_follows_reporter_probes_and_names_engines() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (lab, fa, fb) = (
+        FakeOpenAi::start(),
+        FakeOpenAi::start(),
+        FakeOpenAi::start(),
+    );
+    let interval = 0.3;
+    let mut c = format!(
+        "reporters = [\"videollama2\", \"videollava\"]\n\n[server]\nprobe_interval_s = {interval}\n\n"
+    );
+    c += &clip_embedder_toml(tmp.path());
+    c += &fa.reporter_toml("videollama2", "frames");
+    c += &fb.reporter_toml("videollava", "video_url");
+    c += &lab.labeler_toml();
+    let srv = TestApp::from_toml(tmp.path(), &c).await;
+    let probed = |v: &Value| {
+        ["videollama2", "videollava"]
+            .iter()
+            .all(|n| v["components"]["reporters"][n]["last_probe"].is_string())
+    };
+    let (status, v) = until(&srv, Duration::from_secs(3), probed).await;
+    assert_eq!(status, 200, "{v:#}");
+    assert!(probed(&v), "{v:#}");
+    assert_eq!(v["ready"], true);
+    let comp = &v["components"];
+    assert_eq!(comp["embedder"]["engine"], "candle", "{v:#}");
+    assert_eq!(comp["embedder"]["ready"], true);
+    assert!(comp["embedder"]["dim"].as_u64().unwrap() > 0, "{v:#}");
+    assert_eq!(comp["labeler"]["kind"], "openai");
+    assert_eq!(comp["labeler"]["engine"], "remote");
+    assert_eq!(comp["store"]["ready"], true);
+    assert_eq!(comp["reporters"]["videollava"]["kind"], "openai");
+    assert_eq!(comp["reporters"]["videollava"]["ready"], true);
+
+    // One server goes down: that reporter is not ready within one interval (plus the probe's
+    // own time); /v1/infer still serves with the other, so /readyz stays 200.
+    drop(fb);
+    let down = |v: &Value| v["components"]["reporters"]["videollava"]["ready"] == false;
+    let t = Instant::now();
+    let (status, v) = until(&srv, Duration::from_secs(3), down).await;
+    assert!(down(&v), "{v:#}");
+    assert!(
+        t.elapsed() < Duration::from_secs_f64(2.0 * interval + 0.5),
+        "noticed after {:?}",
+        t.elapsed()
+    );
+    assert_eq!(status, 200, "{v:#}");
+    let err = v["components"]["reporters"]["videollava"]["error"]
+        .as_str()
+        .unwrap();
+    assert!(err.contains("/v1/models") && !err.contains('\n'), "{err}");
+    assert_eq!(v["components"]["reporters"]["videollama2"]["ready"], true);
+
+    // The other one too: nothing can serve /v1/infer, so 503 with one line saying why.
+    drop(fa);
+    let (status, v) = until(&srv, Duration::from_secs(3), |v| v["ready"] == false).await;
+    assert_eq!(status, 503, "{v:#}");
+    assert_eq!(v["kind"], "not_ready");
+    assert_eq!(v["infer"]["ready"], false);
+    let e = v["error"].as_str().unwrap();
+    assert!(e.contains("reporters") && !e.contains('\n'), "{e}");
+}
+
+/// An embedder that fails to load: 503, its engine named, and the reason is one line.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_failing_embedder_is_one_line_in_readyz() {
+    let tmp = tempfile::tempdir().unwrap();
+    let fake = FakeOpenAi::start();
+    let weights = tmp.path().join("clip");
+    std::fs::create_dir_all(&weights).unwrap();
+    std::fs::write(weights.join("config.json"), "{\"not\": \"a clip config\"}").unwrap();
+    std::fs::write(weights.join("model.safetensors"), b"garbage").unwrap();
+    let mut c = String::from("reporters = [\"videollama2\"]\n\n");
+    c += &format!("[embedder]\nweights = {{ path = {weights:?} }}\n\n");
+    c += &fake.reporter_toml("videollama2", "frames");
+    c += &fake.labeler_toml();
+    let srv = TestApp::from_toml(tmp.path(), &c).await;
+    let r = srv.get("/readyz").await;
+    let v = r.json();
+    assert_eq!(r.status, 503, "{v:#}");
+    let emb = &v["components"]["embedder"];
+    assert_eq!(emb["ready"], false);
+    assert_eq!(emb["engine"], "candle");
+    let why = emb["error"].as_str().unwrap();
+    assert!(
+        !why.is_empty() && !why.contains('\n') && why.len() < 600,
+        "{why}"
+    );
+    assert!(!v["error"].as_str().unwrap().contains('\n'), "{v:#}");
+    assert!(r.body.len() < 4096, "{} bytes", r.body.len());
+}
