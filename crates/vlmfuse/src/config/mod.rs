@@ -205,6 +205,14 @@ impl Config {
         );
         seconds("limits.request_timeout_s", l.request_timeout_s)?;
         seconds("server.probe_interval_s", self.server.probe_interval_s)?;
+        ensure!(
+            l.idempotency_ttl_s.is_finite()
+                && l.idempotency_ttl_s > 0.0
+                && l.idempotency_ttl_s <= 30.0 * MAX_SECONDS,
+            "limits.idempotency_ttl_s must be a number of seconds in (0, {}], got {}",
+            30.0 * MAX_SECONDS,
+            l.idempotency_ttl_s
+        );
         self.fusion.validate().map_err(anyhow::Error::msg)?;
         let m = &self.media;
         ensure!(

@@ -61,6 +61,11 @@ pub struct Limits {
     /// round, in one call, so this bounds one request's hold on the labeler).
     #[arg(long, env = "VLMFUSE_MAX_LABEL_TEXTS", required = false)]
     pub max_label_texts: usize,
+    /// Seconds an idempotency key (`Idempotency-Key` or `request_id` on /v1/fuse and
+    /// /v1/infer) is remembered: a retry within it gets the stored answer; later the key is
+    /// forgotten (pruned from the database).
+    #[arg(long, env = "VLMFUSE_IDEMPOTENCY_TTL_S", required = false)]
+    pub idempotency_ttl_s: f64,
 }
 
 impl Default for Limits {
@@ -71,6 +76,7 @@ impl Default for Limits {
             request_timeout_s: 30.0,
             max_batch_rounds: 1024,
             max_label_texts: 64,
+            idempotency_ttl_s: 86_400.0,
         }
     }
 }

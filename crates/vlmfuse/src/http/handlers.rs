@@ -15,17 +15,35 @@ use serde_json::Value;
 #[from_request(via(axum::Json), rejection(ApiError))]
 pub struct ApiJson<T>(pub T);
 
+/// The `Idempotency-Key` header, if any (its value is checked by the service).
+pub fn idempotency_header(h: &HeaderMap) -> Result<Option<String>, ApiError> {
+    match h.get("idempotency-key") {
+        None => Ok(None),
+        Some(v) => v.to_str().map(|s| Some(s.to_string())).map_err(|_| {
+            ServiceError::Invalid("the Idempotency-Key header is not visible ASCII".into()).into()
+        }),
+    }
+}
+
+/// A storing route's answer; a replay of a stored one says so in `Idempotent-Replayed: true`.
+pub fn answer_response(a: crate::service::Answer) -> Response {
+    let mut resp = axum::Json(a.body).into_response();
+    if a.replayed {
+        resp.headers_mut()
+            .insert("idempotent-replayed", HeaderValue::from_static("true"));
+    }
+    resp
+}
+
 /// `POST /v1/fuse`: one SPEC §8 round (without truth) or `{"rounds": [...]}`.
 pub async fn fuse(
     State(st): State<AppState>,
+    headers: HeaderMap,
     ApiJson(body): ApiJson<Value>,
 ) -> Result<Response, ApiError> {
-    let out = st.service.fuse(body).await?;
-    Ok(if out.batch {
-        axum::Json(crate::wire::FuseBatchOut { rounds: out.rounds }).into_response()
-    } else {
-        axum::Json(out.rounds.into_iter().next().expect("one round")).into_response()
-    })
+    let key = idempotency_header(&headers)?;
+    let answer = st.service.fuse(body, key.as_deref()).await?;
+    Ok(answer_response(answer))
 }
 
 #[derive(Deserialize)]

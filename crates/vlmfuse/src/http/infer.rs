@@ -8,8 +8,9 @@ use axum::body::{Body, Bytes};
 use axum::extract::multipart::Field;
 use axum::extract::{FromRequest, Multipart, Request, State};
 use axum::http::{header, StatusCode};
-use axum::response::{IntoResponse, Response};
+use axum::response::Response;
 use futures::StreamExt;
+use sha2::Digest;
 use std::time::Instant;
 use tokio::io::AsyncWriteExt;
 use vlmfuse_media::MediaError;
@@ -18,15 +19,22 @@ use vlmfuse_media::MediaError;
 pub async fn infer(State(st): State<AppState>, req: Request) -> Result<Response, ApiError> {
     // Refuse before reading a byte of the upload when a component is missing.
     st.service.check_infer_ready()?;
+    let header_key = super::handlers::idempotency_header(req.headers())?;
     let req = refuse_long_preamble(req).await?;
     let mut multipart = Multipart::from_request(req, &st).await?;
     let media = &st.service.config().media;
     let spool_dir = st.service.config().spool_dir();
     let mut uploads = Vec::new();
+    let mut request_id: Option<String> = None;
     while let Some(field) = multipart.next_field().await? {
+        if field.name() == Some("request_id") {
+            request_id = Some(read_request_id(field).await?);
+            continue;
+        }
         if field.name() != Some("video") {
             return Err(ServiceError::Invalid(format!(
-                "unexpected part {:?}: send each clip as a part named \"video\"",
+                "unexpected part {:?}: send each clip as a part named \"video\" (and an \
+                 optional idempotency key as a part named \"request_id\")",
                 field.name().unwrap_or("")
             ))
             .into());
@@ -43,12 +51,28 @@ pub async fn infer(State(st): State<AppState>, req: Request) -> Result<Response,
         )
         .into());
     }
-    let out = st.service.infer(uploads).await?;
-    Ok(if out.batch {
-        axum::Json(crate::wire::InferBatchOut { clips: out.clips }).into_response()
-    } else {
-        axum::Json(out.clips.into_iter().next().expect("one clip")).into_response()
-    })
+    let answer = st
+        .service
+        .infer(uploads, header_key.as_deref(), request_id.as_deref())
+        .await?;
+    Ok(super::handlers::answer_response(answer))
+}
+
+/// The `request_id` part: a short text (an idempotency key).
+async fn read_request_id(mut field: Field<'_>) -> Result<String, ApiError> {
+    let mut buf = Vec::new();
+    while let Some(chunk) = field.chunk().await? {
+        buf.extend_from_slice(&chunk);
+        if buf.len() > crate::service::fuse_max_key_len() {
+            return Err(ServiceError::Invalid(format!(
+                "the request_id part is longer than {} bytes",
+                crate::service::fuse_max_key_len()
+            ))
+            .into());
+        }
+    }
+    String::from_utf8(buf)
+        .map_err(|_| ServiceError::Invalid("the request_id part is not UTF-8".into()).into())
 }
 
 /// Streams one part to a temporary file, refusing it as soon as it passes `max_bytes`.
@@ -77,11 +101,13 @@ async fn spool(
     .map_err(io)?;
     let mut out = tokio::fs::File::from_std(file.reopen().map_err(io)?);
     let mut bytes = 0u64;
+    let mut hash = sha2::Sha256::new();
     while let Some(chunk) = field.chunk().await? {
         bytes += chunk.len() as u64;
         if bytes > max_bytes {
             return Err(MediaError::TooLarge { bytes, max_bytes }.into());
         }
+        hash.update(&chunk);
         out.write_all(&chunk).await.map_err(io)?;
     }
     out.flush().await.map_err(io)?;
@@ -91,6 +117,7 @@ async fn spool(
         file_name,
         bytes,
         upload_ms: stage("upload", start),
+        sha256: hash.finalize().into(),
     })
 }
 

@@ -18,9 +18,14 @@ mod readiness;
 pub mod writer;
 
 pub use error::ServiceError;
-pub use fuse::Fused;
+pub use fuse::{fingerprint, idempotency_key, Answer, IdemRequest};
+
+/// Longest idempotency key (`Idempotency-Key` or `request_id`).
+pub fn fuse_max_key_len() -> usize {
+    fuse::MAX_KEY_LEN
+}
 pub(crate) use infer::stage;
-pub use infer::{Inferred, Upload};
+pub use infer::Upload;
 pub use label::Labelled;
 pub use pipeline::Pipeline;
 pub use readiness::Readiness;
@@ -42,6 +47,7 @@ use writer::{Cmd, Shared};
 pub struct TestHooks {
     fuse_delay_ms: AtomicU64,
     fuse_hold_ms: AtomicU64,
+    after_queue_ms: AtomicU64,
 }
 
 impl TestHooks {
@@ -59,6 +65,17 @@ impl TestHooks {
     pub fn set_fuse_hold(&self, d: Duration) {
         self.fuse_hold_ms
             .store(d.as_millis() as u64, Ordering::Relaxed);
+    }
+
+    /// Every round-storing request waits this long after its rounds are queued for the writer
+    /// (so that a request timeout lands after the commit was decided).
+    pub fn set_after_queue_delay(&self, d: Duration) {
+        self.after_queue_ms
+            .store(d.as_millis() as u64, Ordering::Relaxed);
+    }
+
+    fn after_queue_delay(&self) -> Duration {
+        Duration::from_millis(self.after_queue_ms.load(Ordering::Relaxed))
     }
 
     fn fuse_hold(&self) -> Duration {
@@ -163,8 +180,13 @@ impl Service {
             secs = start.elapsed().as_secs_f64(),
             "clip pipeline loaded"
         );
-        let (tx, writer) =
-            writer::spawn(store, shared.clone(), metrics.clone()).context("writer thread")?;
+        let (tx, writer) = writer::spawn(
+            store,
+            shared.clone(),
+            metrics.clone(),
+            Duration::from_secs_f64(cfg.limits.idempotency_ttl_s),
+        )
+        .context("writer thread")?;
         let pipeline = Arc::new(pipeline);
         let (health, probes) = readiness::start_probes(
             &pipeline,

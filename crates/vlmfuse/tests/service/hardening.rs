@@ -2,7 +2,7 @@
 //! routes never block a runtime thread on the engine lock; idempotent retries; the context
 //! dimension of a configured embedder; per-component readiness.
 
-use crate::support::TestApp;
+use crate::support::{Resp, TestApp};
 use axum::body::Body;
 use axum::http::Request;
 use serde_json::Value;
@@ -260,4 +260,147 @@ async fn a_failing_embedder_is_one_line_in_readyz() {
     );
     assert!(!v["error"].as_str().unwrap().contains('\n'), "{v:#}");
     assert!(r.body.len() < 4096, "{} bytes", r.body.len());
+}
+
+fn fuse_round(x: f64) -> Value {
+    serde_json::json!({"context": [x, 1.0, -0.5],
+        "reports": {"vlaad": ["brake"], "videollama2": ["brake", "stop"], "videollava": []}})
+}
+
+async fn post_keyed(srv: &TestApp, path: &str, key: &str, body: &Value) -> Resp {
+    srv.request(
+        "POST",
+        path,
+        &[
+            ("content-type", "application/json"),
+            ("idempotency-key", key),
+        ],
+        serde_json::to_vec(body).unwrap(),
+    )
+    .await
+}
+
+/// A `/v1/fuse` that times out after its round was queued still commits; the retry with the
+/// same key gets the first answer (same round id), stores nothing, and so does a retry after
+/// a restart. The same key on another body is 422; `request_id` in the body is the same key.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_timed_out_fuse_retried_with_its_key_is_stored_once() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("d");
+    let mut cfg = vlmfuse::Config::default();
+    cfg.limits.request_timeout_s = 0.3;
+    let srv = TestApp::start(&dir, cfg.clone()).await;
+    srv.state
+        .service
+        .test_hooks()
+        .set_after_queue_delay(Duration::from_millis(800));
+    let r = post_keyed(&srv, "/v1/fuse", "order-17", &fuse_round(1.0)).await;
+    assert_eq!(r.status, 503, "{}", r.json());
+    assert_eq!(r.json()["kind"], "timeout");
+    // The writer committed it anyway.
+    let t = Instant::now();
+    while srv.state().await["rounds"] != 1 && t.elapsed() < Duration::from_secs(5) {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert_eq!(srv.state().await["rounds"], 1);
+    srv.state
+        .service
+        .test_hooks()
+        .set_after_queue_delay(Duration::ZERO);
+
+    let retry = post_keyed(&srv, "/v1/fuse", "order-17", &fuse_round(1.0)).await;
+    let first = retry.json();
+    assert_eq!(retry.status, 200, "{first}");
+    assert_eq!(first["round_id"], "r-00000000", "{first}");
+    assert_eq!(retry.header("idempotent-replayed"), Some("true"));
+    assert_eq!(srv.state().await["rounds"], 1, "the retry stored nothing");
+
+    // The same key on another request.
+    let other = post_keyed(&srv, "/v1/fuse", "order-17", &fuse_round(2.0)).await;
+    assert_eq!(other.status, 422, "{}", other.json());
+    assert_eq!(other.json()["kind"], "idempotency_key_reused");
+    assert!(other.json()["error"].as_str().unwrap().contains("order-17"));
+
+    // `request_id` in the body, then the same key as a header: one round.
+    let mut b = serde_json::json!({"rounds": [fuse_round(3.0), fuse_round(4.0)]});
+    b["request_id"] = "batch-1".into();
+    let a = srv.post("/v1/fuse", &b).await;
+    assert_eq!(a.status, 200, "{}", a.json());
+    assert_eq!(a.header("idempotent-replayed"), None);
+    b.as_object_mut().unwrap().remove("request_id");
+    let again = post_keyed(&srv, "/v1/fuse", "batch-1", &b).await;
+    assert_eq!(again.status, 200);
+    assert_eq!(again.json(), a.json(), "the replay is the first answer");
+    assert_eq!(srv.state().await["rounds"], 3);
+
+    // Keys must be short visible ASCII; header and field must agree.
+    let long = "k".repeat(300);
+    let bad = post_keyed(&srv, "/v1/fuse", &long, &fuse_round(5.0)).await;
+    assert_eq!(bad.status, 422, "{}", bad.json());
+    let mut b = fuse_round(5.0);
+    b["request_id"] = "x".into();
+    let bad = post_keyed(&srv, "/v1/fuse", "y", &b).await;
+    assert_eq!(bad.status, 422, "{}", bad.json());
+    assert_eq!(srv.state().await["rounds"], 3);
+
+    // After a restart the key still answers with the stored round.
+    drop(srv);
+    let srv = TestApp::start(&dir, cfg.clone()).await;
+    let r = post_keyed(&srv, "/v1/fuse", "order-17", &fuse_round(1.0)).await;
+    assert_eq!(r.status, 200);
+    assert_eq!(r.json(), first);
+    assert_eq!(srv.state().await["rounds"], 3);
+    drop(srv);
+
+    // Keys expire: past the TTL the same key stores a new round.
+    cfg.limits.idempotency_ttl_s = 0.2;
+    let srv = TestApp::start(&dir, cfg).await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let r = post_keyed(&srv, "/v1/fuse", "order-17", &fuse_round(1.0)).await;
+    assert_eq!(r.status, 200);
+    assert_eq!(r.header("idempotent-replayed"), None);
+    assert_eq!(r.json()["round_id"], "r-00000003");
+}
+
+/// A keyed `/v1/infer` retried: the stored answer, and no model runs again.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_keyed_infer_retry_runs_no_model() {
+    let tmp = tempfile::tempdir().unwrap();
+    let fake = FakeOpenAi::start();
+    let srv = TestApp::from_toml(tmp.path(), &infer_config(tmp.path(), &fake)).await;
+    let clip = vlmfuse_testkit::clips::h264_clip(tmp.path(), "a.mp4", "testsrc", 1.0);
+    let data = std::fs::read(&clip).unwrap();
+    let body = multipart(&[("video", "a.mp4", &data)]);
+    let ct = content_type();
+    let send = |body: Vec<u8>, key: &'static str| {
+        let ct = ct.clone();
+        let srv = &srv;
+        async move {
+            srv.request(
+                "POST",
+                "/v1/infer",
+                &[("content-type", ct.as_str()), ("idempotency-key", key)],
+                body,
+            )
+            .await
+        }
+    };
+    let a = send(body.clone(), "clip-1").await;
+    assert_eq!(a.status, 200, "{}", a.json());
+    let calls = fake.calls("videollama2-7b");
+    let b = send(body.clone(), "clip-1").await;
+    assert_eq!(b.status, 200);
+    assert_eq!(b.header("idempotent-replayed"), Some("true"));
+    assert_eq!(b.json(), a.json());
+    assert_eq!(
+        fake.calls("videollama2-7b"),
+        calls,
+        "no reporter ran for the replay"
+    );
+    // Another clip under the same key.
+    let other = multipart(&[("video", "a.mp4", &data[..data.len() - 1])]);
+    let c = send(other, "clip-1").await;
+    assert_eq!(c.status, 422, "{}", c.json());
+    assert_eq!(c.json()["kind"], "idempotency_key_reused");
+    assert_eq!(srv.state().await["rounds"], 1);
 }
