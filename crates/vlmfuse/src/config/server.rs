@@ -29,6 +29,17 @@ pub struct ServerConfig {
     /// URL); `/readyz` reports the last one. A probe waits at most this long, and 5 s.
     #[arg(long, env = "VLMFUSE_PROBE_INTERVAL_S", required = false)]
     pub probe_interval_s: f64,
+    /// Seconds a client has to send a whole request head once its first byte arrived; a
+    /// slower one (slowloris) is disconnected.
+    #[arg(long, env = "VLMFUSE_HEADER_READ_TIMEOUT_S", required = false)]
+    pub header_read_timeout_s: f64,
+    /// Seconds a connection may sit idle (no request in flight, nothing received) before it is
+    /// closed, after accept or between keep-alive requests.
+    #[arg(long, env = "VLMFUSE_IDLE_TIMEOUT_S", required = false)]
+    pub idle_timeout_s: f64,
+    /// Most open client connections; past it new connections wait, unserved, until one closes.
+    #[arg(long, env = "VLMFUSE_MAX_CONNECTIONS", required = false)]
+    pub max_connections: usize,
 }
 
 impl Default for ServerConfig {
@@ -38,6 +49,9 @@ impl Default for ServerConfig {
             data_dir: DEFAULT_DATA_DIR.into(),
             api_key: None,
             probe_interval_s: 10.0,
+            header_read_timeout_s: 10.0,
+            idle_timeout_s: 60.0,
+            max_connections: 1024,
         }
     }
 }

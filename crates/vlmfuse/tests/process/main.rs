@@ -5,4 +5,5 @@ mod eval_cli;
 mod label_cli;
 mod replay;
 mod shutdown;
+mod slowloris;
 mod support;
