@@ -180,6 +180,30 @@ impl Service {
             secs = start.elapsed().as_secs_f64(),
             "clip pipeline loaded"
         );
+        // A configured embedder's output dimension is the context dimension: fixed now, so a
+        // `/v1/fuse` round of another dimension is refused (422) rather than fixing it for
+        // good, and a data directory written under another dimension is refused here. Without
+        // an embedder the first stored round fixes it.
+        if let Some(emb) = &pipeline.embedder {
+            let d = emb.dim();
+            let mut eng = shared.engine.write().await;
+            match eng.dim() {
+                Some(stored) if stored != d => anyhow::bail!(
+                    "the data directory {} holds rounds with {stored}-dimensional contexts, but \
+                     the configured embedder ({}) produces {d}-dimensional ones; use another \
+                     data directory (server.data_dir) or the embedder the rounds were written with",
+                    cfg.server.data_dir.display(),
+                    cfg.embedder
+                        .as_ref()
+                        .map(|e| e.weights.describe())
+                        .unwrap_or_default()
+                ),
+                Some(_) => {}
+                None => eng
+                    .fix_dim(d)
+                    .context("fixing the context dimension to the embedder's")?,
+            }
+        }
         let (tx, writer) = writer::spawn(
             store,
             shared.clone(),

@@ -404,3 +404,64 @@ async fn a_keyed_infer_retry_runs_no_model() {
     assert_eq!(c.json()["kind"], "idempotency_key_reused");
     assert_eq!(srv.state().await["rounds"], 1);
 }
+
+/// With an embedder configured, its output dimension is the context dimension from the start:
+/// a `/v1/fuse` round of another dimension is 422 (it used to fix the dimension for good, and
+/// every later clip was refused); a data directory holding rounds of another dimension is
+/// refused at startup, naming both dimensions and the directory.
+#[tokio::test(flavor = "multi_thread")]
+async fn the_embedder_fixes_the_context_dimension() {
+    let tmp = tempfile::tempdir().unwrap();
+    let fake = FakeOpenAi::start();
+    let srv = TestApp::from_toml(tmp.path(), &infer_config(tmp.path(), &fake)).await;
+    let dim = srv.get("/readyz").await.json()["components"]["embedder"]["dim"]
+        .as_u64()
+        .unwrap() as usize;
+    assert_ne!(dim, 1);
+    let r = srv
+        .post(
+            "/v1/fuse",
+            &serde_json::json!({"context": [1.0], "reports": {"videollama2": ["brake"]}}),
+        )
+        .await;
+    assert_eq!(r.status, 422, "{}", r.json());
+    assert_eq!(r.json()["kind"], "dimension_mismatch", "{}", r.json());
+    assert_eq!(srv.state().await["dim"], dim, "{}", srv.state().await);
+    // A round of the embedder's dimension is fine, and so is a clip after it.
+    let ctx: Vec<f64> = (0..dim).map(|i| (i as f64 + 1.0).sin()).collect();
+    let r = srv
+        .post(
+            "/v1/fuse",
+            &serde_json::json!({"context": ctx, "reports": {"videollama2": ["brake"]}}),
+        )
+        .await;
+    assert_eq!(r.status, 200, "{}", r.json());
+    let clip = vlmfuse_testkit::clips::h264_clip(tmp.path(), "a.mp4", "testsrc", 1.0);
+    assert_eq!(srv.post_clip(&clip).await.status, 200);
+    drop(srv);
+
+    // A data directory written with 3-dimensional contexts, then opened with the embedder.
+    let other = tmp.path().join("other");
+    let plain =
+        vlmfuse::Config::from_toml("reporters = [\"videollama2\", \"videollava\"]\n").unwrap();
+    let three = TestApp::start(&other, plain).await;
+    let r = three
+        .post(
+            "/v1/fuse",
+            &serde_json::json!({"context": [1.0, 0.5, 0.0], "reports": {"videollama2": ["brake"]}}),
+        )
+        .await;
+    assert_eq!(r.status, 200);
+    drop(three);
+    let mut cfg = vlmfuse::Config::from_toml(&infer_config(tmp.path(), &fake)).unwrap();
+    cfg.server.data_dir = other.clone();
+    let err = match vlmfuse::serve::build(cfg).await {
+        Ok(_) => panic!("a 3-d data directory was opened under a {dim}-d embedder"),
+        Err(e) => format!("{e:#}"),
+    };
+    assert!(
+        err.contains(&format!("{dim}")) && err.contains('3'),
+        "{err}"
+    );
+    assert!(err.contains(&other.display().to_string()), "{err}");
+}
