@@ -8,15 +8,32 @@ use axum::body::{Body, Bytes};
 use axum::extract::multipart::Field;
 use axum::extract::{FromRequest, Multipart, Request, State};
 use axum::http::{header, StatusCode};
-use axum::response::Response;
+use axum::response::{IntoResponse, Response};
 use futures::StreamExt;
 use sha2::Digest;
 use std::time::Instant;
 use tokio::io::AsyncWriteExt;
 use vlmfuse_media::MediaError;
 
-/// `POST /v1/infer`.
-pub async fn infer(State(st): State<AppState>, req: Request) -> Result<Response, ApiError> {
+/// `POST /v1/infer`. A refusal may come before the body was read to its end (a long preamble,
+/// a clip over the size limit, a bad part): the answer then says `Connection: close`, since
+/// the unread rest of the body would otherwise be taken for the next request, and a client
+/// reusing the connection would fail its next request.
+pub async fn infer(st: State<AppState>, req: Request) -> Response {
+    match infer_inner(st, req).await {
+        Ok(r) => r,
+        Err(e) => {
+            let mut resp = e.into_response();
+            resp.headers_mut().insert(
+                header::CONNECTION,
+                axum::http::HeaderValue::from_static("close"),
+            );
+            resp
+        }
+    }
+}
+
+async fn infer_inner(State(st): State<AppState>, req: Request) -> Result<Response, ApiError> {
     // Refuse before reading a byte of the upload when a component is missing.
     st.service.check_infer_ready()?;
     let header_key = super::handlers::idempotency_header(req.headers())?;

@@ -6,4 +6,5 @@ mod label_cli;
 mod replay;
 mod shutdown;
 mod slowloris;
+mod soak;
 mod support;
