@@ -3,6 +3,7 @@
 
 mod eval_cli;
 mod label_cli;
+mod readiness;
 mod replay;
 mod shutdown;
 mod slowloris;

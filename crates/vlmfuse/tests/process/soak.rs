@@ -126,7 +126,7 @@ async fn client_loop(
                 let ctx: Vec<f64> = (0..dim)
                     .map(|k| ((c * 31 + i * 7 + k) as f64).sin())
                     .collect();
-                let reports = if i % 2 == 0 {
+                let reports = if i.is_multiple_of(2) {
                     json!({"videollama2": ["brake"], "videollava": ["brake", "stop"]})
                 } else {
                     json!({"videollama2": [], "videollava": ["stop"]})
