@@ -15,7 +15,7 @@
 //! backlog, unserved, until one closes.
 
 use axum::Router;
-use hyper_util::rt::{TokioExecutor, TokioIo};
+use hyper_util::rt::TokioIo;
 use std::future::Future;
 use std::io;
 use std::pin::Pin;
@@ -257,8 +257,10 @@ pub async fn serve(
                         resp
                     }
                 });
-            let builder = hyper_util::server::conn::auto::Builder::new(TokioExecutor::new());
-            let conn = builder.serve_connection_with_upgrades(io, svc);
+            // HTTP/1.1, as axum::serve served it here (axum's http2 feature is off).
+            let conn = hyper::server::conn::http1::Builder::new()
+                .serve_connection(io, svc)
+                .with_upgrades();
             tokio::pin!(conn);
             tokio::select! {
                 res = conn.as_mut() => {
