@@ -106,6 +106,13 @@ pub fn chat_endpoint(base: &str) -> String {
     }
 }
 
+/// The default cap on an answer's body: a chat completion is a few KiB; 4 MiB leaves room for
+/// long answers and verbose servers while bounding what one reply can make us hold.
+pub const DEFAULT_MAX_RESPONSE_BYTES: usize = 4 << 20;
+
+/// How much of an error answer is kept for the message.
+const ERROR_BODY_BYTES: usize = 4096;
+
 /// A client for one endpoint with one retry policy.
 #[derive(Debug, Clone)]
 pub struct ChatClient {
@@ -115,6 +122,54 @@ pub struct ChatClient {
     timeout: Duration,
     policy: RetryPolicy,
     http: reqwest::Client,
+    /// Largest answer body read; past it the answer is refused, not buffered.
+    max_response_bytes: usize,
+}
+
+/// Whether a transport error is a refused connection (nothing listens there): retrying in a
+/// few hundred milliseconds only delays the round's failure.
+fn is_refused(e: &reqwest::Error) -> bool {
+    let mut src: Option<&dyn std::error::Error> = Some(e);
+    while let Some(c) = src {
+        if let Some(io) = c.downcast_ref::<std::io::Error>() {
+            if io.kind() == std::io::ErrorKind::ConnectionRefused {
+                return true;
+            }
+        }
+        src = c.source();
+    }
+    false
+}
+
+/// Reads at most `cap` bytes of a body: `Ok(None)` when it is longer (the rest is not read).
+async fn read_capped(
+    mut resp: reqwest::Response,
+    cap: usize,
+) -> Result<Option<Vec<u8>>, reqwest::Error> {
+    if resp.content_length().is_some_and(|n| n > cap as u64) {
+        return Ok(None);
+    }
+    let mut buf = Vec::new();
+    while let Some(chunk) = resp.chunk().await? {
+        if buf.len() + chunk.len() > cap {
+            return Ok(None);
+        }
+        buf.extend_from_slice(&chunk);
+    }
+    Ok(Some(buf))
+}
+
+/// The first bytes of an error answer, as text.
+async fn error_text(mut resp: reqwest::Response) -> String {
+    let mut buf = Vec::new();
+    while buf.len() < ERROR_BODY_BYTES {
+        match resp.chunk().await {
+            Ok(Some(c)) => buf.extend_from_slice(&c),
+            _ => break,
+        }
+    }
+    buf.truncate(ERROR_BODY_BYTES);
+    String::from_utf8_lossy(&buf).into_owned()
 }
 
 impl ChatClient {
@@ -130,7 +185,14 @@ impl ChatClient {
             timeout,
             policy,
             http: shared_http_client(),
+            max_response_bytes: DEFAULT_MAX_RESPONSE_BYTES,
         }
+    }
+
+    /// Caps the answer body (default [`DEFAULT_MAX_RESPONSE_BYTES`]).
+    pub fn with_max_response_bytes(mut self, cap: usize) -> Self {
+        self.max_response_bytes = cap.max(1);
+        self
     }
 
     /// Uses another connection pool (tests, custom TLS).
@@ -145,6 +207,36 @@ impl ChatClient {
 
     pub fn policy(&self) -> &RetryPolicy {
         &self.policy
+    }
+
+    /// The server's `/v1/models` URL, beside the chat endpoint (the health probe's target).
+    pub fn models_endpoint(&self) -> String {
+        let base = self
+            .endpoint
+            .strip_suffix("/chat/completions")
+            .unwrap_or(&self.endpoint);
+        format!("{base}/models")
+    }
+
+    /// A health probe: `GET /v1/models` once, no retry, within `timeout`. The server is up when
+    /// it answers 2xx, or 404/405 (a server without a model listing still serves chat); a
+    /// refused connection, a timeout, a 5xx or a 401/403 (a key the server refuses) is the
+    /// one-line reason it is not.
+    pub async fn probe(&self, timeout: Duration) -> Result<(), String> {
+        let url = self.models_endpoint();
+        let mut req = self.http.get(&url).timeout(timeout);
+        if let Some(k) = &self.api_key {
+            req = req.bearer_auth(k);
+        }
+        match req.send().await {
+            Ok(r) if r.status().is_success() || matches!(r.status().as_u16(), 404 | 405) => Ok(()),
+            Ok(r) => Err(format!("GET {url}: status {}", r.status().as_u16())),
+            Err(e) if e.is_timeout() => Err(format!(
+                "GET {url}: no answer within {:.1}s",
+                timeout.as_secs_f64()
+            )),
+            Err(e) => Err(format!("GET {url}: {}", error_chain(&e))),
+        }
     }
 
     /// Sends a chat-completions request body, retrying per the policy.
@@ -173,10 +265,22 @@ impl ChatClient {
             }
             let (err, retry_after) = match req.send().await {
                 Ok(resp) if resp.status().is_success() => {
-                    let v: Value = resp.json().await.map_err(|e| ChatError::BadResponse {
+                    let bad = |message: String| ChatError::BadResponse {
                         endpoint: self.endpoint.clone(),
-                        message: format!("body is not JSON: {e}"),
-                    })?;
+                        message,
+                    };
+                    let cap = self.max_response_bytes;
+                    let body = read_capped(resp, cap)
+                        .await
+                        .map_err(|e| bad(format!("reading the answer: {}", error_chain(&e))))?
+                        .ok_or_else(|| {
+                            bad(format!(
+                                "the answer is larger than {cap} bytes (max_response_bytes); \
+                                 nothing past it was read"
+                            ))
+                        })?;
+                    let v: Value = serde_json::from_slice(&body)
+                        .map_err(|e| bad(format!("body is not JSON: {e}")))?;
                     return parse_chat_response(&v).map_err(|m| ChatError::BadResponse {
                         endpoint: self.endpoint.clone(),
                         message: m,
@@ -189,7 +293,7 @@ impl ChatClient {
                         .get(reqwest::header::RETRY_AFTER)
                         .and_then(|h| h.to_str().ok())
                         .and_then(parse_retry_after);
-                    let mut msg = resp.text().await.unwrap_or_default();
+                    let mut msg = error_text(resp).await;
                     truncate(&mut msg, 500);
                     let err = ChatError::Remote {
                         endpoint: self.endpoint.clone(),
@@ -210,6 +314,15 @@ impl ChatClient {
                     },
                     None,
                 ),
+                // Nothing listens there: fail now, a retry in half a second finds the same.
+                Err(e) if is_refused(&e) => {
+                    return Err(ChatError::Remote {
+                        endpoint: self.endpoint.clone(),
+                        status: None,
+                        attempts: attempt,
+                        message: error_chain(&e),
+                    })
+                }
                 Err(e) if e.is_connect() || e.is_request() => (
                     ChatError::Remote {
                         endpoint: self.endpoint.clone(),

@@ -338,3 +338,50 @@ async fn unreachable_server_is_a_remote_error() {
     assert_eq!(e.kind(), "remote", "{e}");
     assert!(e.to_string().contains(&addr.to_string()), "{e}");
 }
+
+/// A refused connection is final: no backoff and retry (the server is not there).
+#[tokio::test]
+async fn a_refused_connection_fails_fast() {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = listener.local_addr().unwrap();
+    drop(listener);
+    let tmp = tempfile::tempdir().unwrap();
+    let r = OpenAiReporter::new(OpenAiReporterConfig {
+        retries: 2,
+        backoff_initial_ms: 500,
+        ..cfg(&format!("http://{addr}"))
+    })
+    .unwrap();
+    let t = Instant::now();
+    let e = r.run(&clip(tmp.path())).await.unwrap_err();
+    let el = t.elapsed();
+    assert!(el < Duration::from_millis(300), "took {el:?}: {e}");
+    assert!(e.to_string().contains("1 attempt"), "{e}");
+}
+
+/// An upstream answer larger than `max_response_bytes` is refused with a clear error, not read
+/// whole into memory.
+#[tokio::test]
+async fn an_oversized_answer_is_refused() {
+    let big = "x".repeat(300_000);
+    let (url, _f) = fake(move |_| ok(&big)).await;
+    let tmp = tempfile::tempdir().unwrap();
+    let r = OpenAiReporter::new(OpenAiReporterConfig {
+        max_response_bytes: 100_000,
+        ..cfg(&url)
+    })
+    .unwrap();
+    let e = r.run(&clip(tmp.path())).await.unwrap_err();
+    let s = e.to_string();
+    assert!(
+        s.contains("100000") && s.contains("max_response_bytes"),
+        "{s}"
+    );
+    // Under the cap it is read.
+    let r = OpenAiReporter::new(OpenAiReporterConfig {
+        max_response_bytes: 1_000_000,
+        ..cfg(&url)
+    })
+    .unwrap();
+    assert_eq!(r.run(&clip(tmp.path())).await.unwrap().text.len(), 300_000);
+}

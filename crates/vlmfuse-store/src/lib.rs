@@ -86,6 +86,18 @@ pub struct StoredFeedback {
     pub outcome: FeedbackOutcome,
 }
 
+/// A stored idempotency key: which request it was used for and what that request answered.
+#[derive(Debug, Clone, PartialEq)]
+pub struct IdempotencyRecord {
+    pub key: String,
+    /// The route, e.g. `/v1/fuse`: one key names one request on one route.
+    pub route: String,
+    /// A hash of the request, to tell a retry from another request under the same key.
+    pub fingerprint: String,
+    pub response: serde_json::Value,
+    pub created_ms: i64,
+}
+
 /// What [`Store::load_engine`] found.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LoadReport {
@@ -181,6 +193,17 @@ CREATE TABLE IF NOT EXISTS feedback (
     truth          BLOB NOT NULL,   -- L bytes, 0/1
     outcome        TEXT NOT NULL    -- vlmfuse_fusion::FeedbackOutcome as JSON
 );
+-- Idempotency keys of /v1/fuse and /v1/infer: the answer a retry with the same key gets.
+-- Written in the transaction that stores the rounds, so a request that timed out after it was
+-- queued still leaves its answer for the retry; rows older than the configured TTL are pruned.
+CREATE TABLE IF NOT EXISTS idempotency (
+    key         TEXT PRIMARY KEY,
+    route       TEXT NOT NULL,
+    fingerprint TEXT NOT NULL,   -- hash of the request (body without the key), hex
+    response    TEXT NOT NULL,   -- the JSON answer
+    created_ms  INTEGER NOT NULL
+);
+CREATE INDEX IF NOT EXISTS idempotency_created ON idempotency (created_ms);
 -- One row: the reputations after the last feedback, to check the rebuild against.
 CREATE TABLE IF NOT EXISTS state (
     id          INTEGER PRIMARY KEY CHECK (id = 1),
@@ -549,6 +572,18 @@ impl Store {
     /// Stores rounds in one transaction (group commit), numbered from `first_seq`. The first
     /// round ever stored fixes the context dimension in the same transaction.
     pub fn insert_rounds(&mut self, first_seq: u64, rounds: &[NewRound]) -> Result<(), StoreError> {
+        self.insert_rounds_keyed(first_seq, rounds, &[])
+    }
+
+    /// [`insert_rounds`](Self::insert_rounds) plus the idempotency keys of the requests those
+    /// rounds answer, in the same transaction: the rounds and their keys commit together or
+    /// not at all.
+    pub fn insert_rounds_keyed(
+        &mut self,
+        first_seq: u64,
+        rounds: &[NewRound],
+        keys: &[IdempotencyRecord],
+    ) -> Result<(), StoreError> {
         let tx = self
             .conn
             .transaction_with_behavior(TransactionBehavior::Immediate)?;
@@ -599,9 +634,75 @@ impl Store {
                     serde_json::to_string(&r.request)?,
                 ])?;
             }
+            let mut key = tx.prepare_cached(
+                "INSERT INTO idempotency (key, route, fingerprint, response, created_ms)
+                 VALUES (?1, ?2, ?3, ?4, ?5)
+                 ON CONFLICT(key) DO UPDATE SET route = excluded.route,
+                   fingerprint = excluded.fingerprint, response = excluded.response,
+                   created_ms = excluded.created_ms",
+            )?;
+            for k in keys {
+                key.execute(params![
+                    k.key,
+                    k.route,
+                    k.fingerprint,
+                    serde_json::to_string(&k.response)?,
+                    k.created_ms,
+                ])?;
+            }
         }
         tx.commit()?;
         Ok(())
+    }
+
+    /// The record of an idempotency key created at or after `not_before_ms` (older ones have
+    /// expired, even before [`prune_idempotency`](Self::prune_idempotency) removes them).
+    pub fn idempotency(
+        &self,
+        key: &str,
+        not_before_ms: i64,
+    ) -> Result<Option<IdempotencyRecord>, StoreError> {
+        let row = self
+            .conn
+            .query_row(
+                "SELECT route, fingerprint, response, created_ms FROM idempotency
+                 WHERE key = ?1 AND created_ms >= ?2",
+                params![key, not_before_ms],
+                |r| {
+                    Ok((
+                        r.get::<_, String>(0)?,
+                        r.get::<_, String>(1)?,
+                        r.get::<_, String>(2)?,
+                        r.get::<_, i64>(3)?,
+                    ))
+                },
+            )
+            .optional()?;
+        let Some((route, fingerprint, response, created_ms)) = row else {
+            return Ok(None);
+        };
+        Ok(Some(IdempotencyRecord {
+            key: key.to_string(),
+            route,
+            fingerprint,
+            response: serde_json::from_str(&response)?,
+            created_ms,
+        }))
+    }
+
+    /// Removes the idempotency keys created before `before_ms`; returns how many.
+    pub fn prune_idempotency(&mut self, before_ms: i64) -> Result<usize, StoreError> {
+        Ok(self
+            .conn
+            .execute("DELETE FROM idempotency WHERE created_ms < ?1", [before_ms])?)
+    }
+
+    /// How many idempotency keys are stored.
+    pub fn idempotency_keys(&self) -> Result<u64, StoreError> {
+        let n: i64 = self
+            .conn
+            .query_row("SELECT COUNT(*) FROM idempotency", [], |r| r.get(0))?;
+        Ok(n as u64)
     }
 
     /// Reads a stored round with its frozen inference.

@@ -311,3 +311,48 @@ fn a_data_directory_replays_under_the_other_method() {
     );
     assert_eq!(back.reputations(), paper.reputations());
 }
+
+/// An idempotency key commits with its rounds, survives a reopen, expires by age and is pruned.
+#[test]
+fn idempotency_keys_commit_with_their_rounds_and_expire() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut engine = engine();
+    let rec = record(0);
+    let (round, _) = engine.parse(&rec).unwrap();
+    engine.fix_dim(round.context.len()).unwrap();
+    let inf = engine.infer(&round);
+    let new = NewRound {
+        round,
+        inference: inf,
+        request: serde_json::json!({}),
+        created_ms: 0,
+    };
+    let key = IdempotencyRecord {
+        key: "k-1".into(),
+        route: "/v1/fuse".into(),
+        fingerprint: "abc".into(),
+        response: serde_json::json!({"round_id": "r-00000000"}),
+        created_ms: 1_000,
+    };
+    {
+        let mut store = Store::open(dir.path()).unwrap();
+        store
+            .insert_rounds_keyed(0, std::slice::from_ref(&new), std::slice::from_ref(&key))
+            .unwrap();
+    }
+    let mut store = Store::open(dir.path()).unwrap();
+    assert_eq!(store.idempotency("k-1", 0).unwrap(), Some(key.clone()));
+    assert_eq!(store.idempotency("k-2", 0).unwrap(), None);
+    assert_eq!(
+        store.idempotency("k-1", 1_001).unwrap(),
+        None,
+        "expired by age"
+    );
+    assert_eq!(store.prune_idempotency(999).unwrap(), 0);
+    assert_eq!(store.prune_idempotency(1_001).unwrap(), 1);
+    assert_eq!(store.idempotency_keys().unwrap(), 0);
+    // A failed transaction stores neither the rounds nor the key: seq 0 exists already.
+    let err = store.insert_rounds_keyed(0, std::slice::from_ref(&new), std::slice::from_ref(&key));
+    assert!(err.is_err());
+    assert_eq!(store.idempotency_keys().unwrap(), 0);
+}

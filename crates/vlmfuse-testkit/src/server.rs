@@ -70,6 +70,7 @@ impl FakeOpenAi {
         let state = Arc::new(Mutex::new(FakeState::default()));
         let app = Router::new()
             .route("/v1/chat/completions", post(chat))
+            .route("/v1/models", axum::routing::get(models))
             .with_state(state.clone());
         // Started from another thread: `block_on` is refused inside an async test's runtime.
         let url = std::thread::scope(|s| {
@@ -124,6 +125,17 @@ impl FakeOpenAi {
             self.url
         )
     }
+}
+
+/// `GET /v1/models`, what a health probe asks: the models seen so far, like vLLM's listing.
+async fn models(State(st): State<Arc<Mutex<FakeState>>>) -> impl IntoResponse {
+    let s = st.lock().unwrap();
+    let data: Vec<Value> = s
+        .calls
+        .keys()
+        .map(|m| json!({"id": m, "object": "model"}))
+        .collect();
+    Json(json!({"object": "list", "data": data}))
 }
 
 async fn chat(

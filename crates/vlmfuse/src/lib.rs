@@ -8,6 +8,7 @@
 //!
 //! * [`config`]: one TOML + flag + environment struct per section;
 //! * [`service`]: the engine, the writer thread, the clip pipeline; its own error type, no HTTP;
+//! * [`conn`]: the socket edge: connection cap, header-read and idle timeouts;
 //! * [`http`]: the route table, middleware, and the one place errors become statuses;
 //! * [`wire`]: the JSON shapes of the answers;
 //! * [`serve`], [`eval`], [`bench`], [`label`]: the subcommands ([`cli`]).
@@ -15,6 +16,7 @@
 pub mod bench;
 pub mod cli;
 pub mod config;
+pub mod conn;
 pub mod eval;
 pub mod http;
 pub mod label;

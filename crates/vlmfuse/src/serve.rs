@@ -64,6 +64,7 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         .try_init();
     let cfg = Config::load(&args)?;
     let addr = cfg.listen_addr()?;
+    let limits = cfg.conn_limits();
     let metrics = Metrics::new()?;
     // In the binary, a metric emitted outside a request's scope is kept too.
     metrics.install_global()?;
@@ -80,8 +81,7 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         // Tests and scripts read this line to learn the port when listening on port 0.
         println!("vlmfuse listening on http://{local}");
         tracing::info!("listening on http://{local}");
-        axum::serve(listener, app(state))
-            .with_graceful_shutdown(shutdown_signal())
+        crate::conn::serve(listener, app(state), limits, shutdown_signal())
             .await
             .context("serving")
     })?;

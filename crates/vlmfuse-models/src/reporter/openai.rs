@@ -69,6 +69,9 @@ pub struct OpenAiReporterConfig {
     pub backoff_max_ms: u64,
     /// Merged into the request body top level (e.g. vLLM's `mm_processor_kwargs`).
     pub extra_body: Option<serde_json::Map<String, Value>>,
+    /// Largest answer read from the server, in bytes; a larger one fails the reporter with a
+    /// clear error instead of being read whole into memory.
+    pub max_response_bytes: u64,
 }
 
 impl Default for OpenAiReporterConfig {
@@ -91,6 +94,7 @@ impl Default for OpenAiReporterConfig {
             backoff_initial_ms: 500,
             backoff_max_ms: 8_000,
             extra_body: None,
+            max_response_bytes: vlmfuse_core::chat::DEFAULT_MAX_RESPONSE_BYTES as u64,
         }
     }
 }
@@ -126,6 +130,12 @@ impl OpenAiReporter {
                 cfg.model
             )));
         }
+        if cfg.max_response_bytes == 0 {
+            return Err(ModelError::BadConfig(format!(
+                "openai reporter {}: max_response_bytes must be at least 1",
+                cfg.model
+            )));
+        }
         let api_key = match &cfg.api_key_env {
             None => None,
             Some(var) => match std::env::var(var) {
@@ -143,7 +153,8 @@ impl OpenAiReporter {
             api_key,
             Duration::from_secs_f64(cfg.timeout_s),
             cfg.retry_policy(),
-        );
+        )
+        .with_max_response_bytes(usize::try_from(cfg.max_response_bytes).unwrap_or(usize::MAX));
         Ok(Self {
             name: cfg.name.clone().unwrap_or_else(|| cfg.model.clone()),
             client,
@@ -153,6 +164,11 @@ impl OpenAiReporter {
 
     pub fn endpoint(&self) -> &str {
         self.client.endpoint()
+    }
+
+    /// The readiness probe: `GET /v1/models` of the base URL (see [`ChatClient::probe`]).
+    pub async fn probe(&self, timeout: Duration) -> Result<(), String> {
+        self.client.probe(timeout).await
     }
 
     /// The JSON request for `clip`. Encoding (base64 of the video, JPEG/PNG of frames) runs on
@@ -184,6 +200,17 @@ impl OpenAiReporter {
                     .collect()
             }
         };
+        let mut body = self.body_with_media(media_parts);
+        if let (Some(extra), Some(obj)) = (&self.cfg.extra_body, body.as_object_mut()) {
+            for (k, v) in extra {
+                obj.insert(k.clone(), v.clone());
+            }
+        }
+        Ok(body)
+    }
+
+    /// The chat request around the media parts: system prompt, the parts and the prompt.
+    fn body_with_media(&self, media_parts: Vec<Value>) -> Value {
         let mut content = media_parts;
         content.push(json!({ "type": "text", "text": self.cfg.prompt }));
         let mut messages = Vec::new();
@@ -191,19 +218,13 @@ impl OpenAiReporter {
             messages.push(json!({ "role": "system", "content": sys }));
         }
         messages.push(json!({ "role": "user", "content": content }));
-        let mut body = json!({
+        json!({
             "model": self.cfg.model,
             "messages": messages,
             "max_tokens": self.cfg.max_tokens,
             "temperature": self.cfg.temperature,
             "stream": false,
-        });
-        if let (Some(extra), Some(obj)) = (&self.cfg.extra_body, body.as_object_mut()) {
-            for (k, v) in extra {
-                obj.insert(k.clone(), v.clone());
-            }
-        }
-        Ok(body)
+        })
     }
 
     async fn video_url(&self, path: &Path) -> Result<String, ModelError> {
@@ -234,11 +255,75 @@ impl OpenAiReporter {
         .map_err(|e| ModelError::InvalidInput(format!("video encoding task: {e}")))
     }
 
+    /// Whether the request inlines the clip file (`video_url` mode without a template).
+    fn inlines_file(&self) -> bool {
+        self.cfg.mode == OpenAiMode::VideoUrl && self.cfg.video_url_template.is_none()
+    }
+
+    /// The serialised request for `clip`, built once and shared by every attempt.
+    ///
+    /// An inline clip is base64-encoded straight from the file into the one request buffer,
+    /// sized exactly up front: the body is the only copy (4/3 of the clip). Building a JSON
+    /// value with the data URL and serialising it held the file, the base64 string, the value
+    /// and the bytes at once: about four copies, 32 MiB for a 6 MiB clip.
+    pub async fn request_bytes(&self, clip: &ClipInput) -> Result<bytes::Bytes, ModelError> {
+        if !self.inlines_file() {
+            let body = self.request_body(clip).await?;
+            return serde_json::to_vec(&body)
+                .map(bytes::Bytes::from)
+                .map_err(|e| ModelError::InvalidInput(format!("request serialisation: {e}")));
+        }
+        // The body with a marker where the data URL goes, serialised; the URL is written
+        // between its two halves.
+        let mut body = self.body_with_media(vec![json!({
+            "type": "video_url",
+            "video_url": { "url": INLINE_MARKER }
+        })]);
+        if let (Some(extra), Some(obj)) = (&self.cfg.extra_body, body.as_object_mut()) {
+            for (k, v) in extra {
+                obj.insert(k.clone(), v.clone());
+            }
+        }
+        let text = serde_json::to_vec(&body)
+            .map_err(|e| ModelError::InvalidInput(format!("request serialisation: {e}")))?;
+        let at = text
+            .windows(INLINE_MARKER.len())
+            .position(|w| w == INLINE_MARKER.as_bytes())
+            .ok_or_else(|| ModelError::InvalidInput("request template lost its marker".into()))?;
+        let (prefix, suffix) = (&text[..at], &text[at + INLINE_MARKER.len()..]);
+        let head = format!("data:{};base64,", video_mime(&clip.path));
+        let path = clip.path.clone();
+        let (prefix, suffix) = (prefix.to_vec(), suffix.to_vec());
+        tokio::task::spawn_blocking(move || -> Result<bytes::Bytes, ModelError> {
+            let io = |source| ModelError::Io {
+                path: path.clone(),
+                source,
+            };
+            let mut file = std::fs::File::open(&path).map_err(io)?;
+            let len = file.metadata().map_err(io)?.len() as usize;
+            let b64 = len.div_ceil(3) * 4;
+            let mut out = Vec::with_capacity(prefix.len() + head.len() + b64 + suffix.len());
+            out.extend_from_slice(&prefix);
+            out.extend_from_slice(head.as_bytes());
+            {
+                let mut enc = base64::write::EncoderWriter::new(
+                    &mut out,
+                    &base64::engine::general_purpose::STANDARD,
+                );
+                std::io::copy(&mut file, &mut enc).map_err(io)?;
+                enc.finish().map_err(io)?;
+            }
+            out.extend_from_slice(&suffix);
+            Ok(bytes::Bytes::from(out))
+        })
+        .await
+        .map_err(|e| ModelError::InvalidInput(format!("video encoding task: {e}")))?
+    }
+
     async fn run_inner(&self, clip: &ClipInput) -> Result<ReporterOutput, ModelError> {
         let started = Instant::now();
-        let body = serde_json::to_vec(&self.request_body(clip).await?)
-            .map_err(|e| ModelError::InvalidInput(format!("request serialisation: {e}")))?;
-        let reply = self.client.complete_bytes(body.into()).await?;
+        let body = self.request_bytes(clip).await?;
+        let reply = self.client.complete_bytes(body).await?;
         Ok(ReporterOutput {
             text: reply.text,
             latency_ms: started.elapsed().as_secs_f64() * 1e3,
@@ -246,6 +331,10 @@ impl OpenAiReporter {
         })
     }
 }
+
+/// Stands for the inline data URL in the serialised request template (plain ASCII, so JSON
+/// writes it verbatim; nothing else in a request contains it).
+const INLINE_MARKER: &str = "vlmfuse-inline-video-0b9e41c7d2f35a86";
 
 impl Reporter for OpenAiReporter {
     fn name(&self) -> &str {

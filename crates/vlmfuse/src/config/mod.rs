@@ -204,6 +204,27 @@ impl Config {
             "limits must be at least 1"
         );
         seconds("limits.request_timeout_s", l.request_timeout_s)?;
+        seconds("server.probe_interval_s", self.server.probe_interval_s)?;
+        seconds(
+            "server.header_read_timeout_s",
+            self.server.header_read_timeout_s,
+        )?;
+        seconds("server.idle_timeout_s", self.server.idle_timeout_s)?;
+        ensure!(
+            self.server.max_connections > 0
+                && self.server.max_connections <= tokio::sync::Semaphore::MAX_PERMITS.min(1 << 24),
+            "server.max_connections must be 1..={}, got {}",
+            1 << 24,
+            self.server.max_connections
+        );
+        ensure!(
+            l.idempotency_ttl_s.is_finite()
+                && l.idempotency_ttl_s > 0.0
+                && l.idempotency_ttl_s <= 30.0 * MAX_SECONDS,
+            "limits.idempotency_ttl_s must be a number of seconds in (0, {}], got {}",
+            30.0 * MAX_SECONDS,
+            l.idempotency_ttl_s
+        );
         self.fusion.validate().map_err(anyhow::Error::msg)?;
         let m = &self.media;
         ensure!(
@@ -244,6 +265,16 @@ impl Config {
             }
         }
         Ok(())
+    }
+
+    /// The socket edge's limits ([`crate::conn`]); validated durations.
+    pub fn conn_limits(&self) -> crate::conn::ConnLimits {
+        let s = &self.server;
+        crate::conn::ConnLimits {
+            header_read_timeout: std::time::Duration::from_secs_f64(s.header_read_timeout_s),
+            idle_timeout: std::time::Duration::from_secs_f64(s.idle_timeout_s),
+            max_connections: s.max_connections,
+        }
     }
 
     pub fn listen_addr(&self) -> anyhow::Result<SocketAddr> {

@@ -25,6 +25,21 @@ pub struct ServerConfig {
         required = false
     )]
     pub api_key: Option<String>,
+    /// Seconds between health probes of each remote reporter (`GET /v1/models` of its base
+    /// URL); `/readyz` reports the last one. A probe waits at most this long, and 5 s.
+    #[arg(long, env = "VLMFUSE_PROBE_INTERVAL_S", required = false)]
+    pub probe_interval_s: f64,
+    /// Seconds a client has to send a whole request head once its first byte arrived; a
+    /// slower one (slowloris) is disconnected.
+    #[arg(long, env = "VLMFUSE_HEADER_READ_TIMEOUT_S", required = false)]
+    pub header_read_timeout_s: f64,
+    /// Seconds a connection may sit idle (no request in flight, nothing received) before it is
+    /// closed, after accept or between keep-alive requests.
+    #[arg(long, env = "VLMFUSE_IDLE_TIMEOUT_S", required = false)]
+    pub idle_timeout_s: f64,
+    /// Most open client connections; past it new connections wait, unserved, until one closes.
+    #[arg(long, env = "VLMFUSE_MAX_CONNECTIONS", required = false)]
+    pub max_connections: usize,
 }
 
 impl Default for ServerConfig {
@@ -33,6 +48,10 @@ impl Default for ServerConfig {
             listen: DEFAULT_LISTEN.into(),
             data_dir: DEFAULT_DATA_DIR.into(),
             api_key: None,
+            probe_interval_s: 10.0,
+            header_read_timeout_s: 10.0,
+            idle_timeout_s: 60.0,
+            max_connections: 1024,
         }
     }
 }
@@ -56,6 +75,11 @@ pub struct Limits {
     /// round, in one call, so this bounds one request's hold on the labeler).
     #[arg(long, env = "VLMFUSE_MAX_LABEL_TEXTS", required = false)]
     pub max_label_texts: usize,
+    /// Seconds an idempotency key (`Idempotency-Key` or `request_id` on /v1/fuse and
+    /// /v1/infer) is remembered: a retry within it gets the stored answer; later the key is
+    /// forgotten (pruned from the database).
+    #[arg(long, env = "VLMFUSE_IDEMPOTENCY_TTL_S", required = false)]
+    pub idempotency_ttl_s: f64,
 }
 
 impl Default for Limits {
@@ -66,6 +90,7 @@ impl Default for Limits {
             request_timeout_s: 30.0,
             max_batch_rounds: 1024,
             max_label_texts: 64,
+            idempotency_ttl_s: 86_400.0,
         }
     }
 }

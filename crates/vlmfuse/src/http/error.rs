@@ -102,6 +102,7 @@ fn service_status(e: &ServiceError) -> StatusCode {
         }
         S::UnknownRound(_) => StatusCode::NOT_FOUND,
         S::Conflict(_) => StatusCode::CONFLICT,
+        S::IdempotencyKeyReused(_) => StatusCode::UNPROCESSABLE_ENTITY,
         S::NotReady { .. } | S::ReportersFailed(_) => StatusCode::SERVICE_UNAVAILABLE,
         S::Media(m) => media_status(m.class()),
         S::Embedder(_) | S::WriterStopped | S::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
@@ -120,6 +121,7 @@ fn service_kind(e: &ServiceError) -> &'static str {
         S::TooManyClips(_) => "too_many_clips",
         S::UnknownRound(_) => "unknown_round",
         S::Conflict(_) => "conflict",
+        S::IdempotencyKeyReused(_) => "idempotency_key_reused",
         S::NotReady { .. } => "not_ready",
         S::ReportersFailed(_) => "reporters_failed",
         S::Media(m) if m.is_client_error() => m.kind(),

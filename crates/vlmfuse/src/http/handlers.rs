@@ -15,17 +15,35 @@ use serde_json::Value;
 #[from_request(via(axum::Json), rejection(ApiError))]
 pub struct ApiJson<T>(pub T);
 
+/// The `Idempotency-Key` header, if any (its value is checked by the service).
+pub fn idempotency_header(h: &HeaderMap) -> Result<Option<String>, ApiError> {
+    match h.get("idempotency-key") {
+        None => Ok(None),
+        Some(v) => v.to_str().map(|s| Some(s.to_string())).map_err(|_| {
+            ServiceError::Invalid("the Idempotency-Key header is not visible ASCII".into()).into()
+        }),
+    }
+}
+
+/// A storing route's answer; a replay of a stored one says so in `Idempotent-Replayed: true`.
+pub fn answer_response(a: crate::service::Answer) -> Response {
+    let mut resp = axum::Json(a.body).into_response();
+    if a.replayed {
+        resp.headers_mut()
+            .insert("idempotent-replayed", HeaderValue::from_static("true"));
+    }
+    resp
+}
+
 /// `POST /v1/fuse`: one SPEC §8 round (without truth) or `{"rounds": [...]}`.
 pub async fn fuse(
     State(st): State<AppState>,
+    headers: HeaderMap,
     ApiJson(body): ApiJson<Value>,
 ) -> Result<Response, ApiError> {
-    let out = st.service.fuse(body).await?;
-    Ok(if out.batch {
-        axum::Json(crate::wire::FuseBatchOut { rounds: out.rounds }).into_response()
-    } else {
-        axum::Json(out.rounds.into_iter().next().expect("one round")).into_response()
-    })
+    let key = idempotency_header(&headers)?;
+    let answer = st.service.fuse(body, key.as_deref()).await?;
+    Ok(answer_response(answer))
 }
 
 #[derive(Deserialize)]
@@ -107,12 +125,12 @@ fn label_texts(body: &Value) -> Result<(Vec<String>, bool), ServiceError> {
 
 /// `GET /v1/state`.
 pub async fn state(State(st): State<AppState>) -> Response {
-    axum::Json(st.service.state()).into_response()
+    axum::Json(st.service.state().await).into_response()
 }
 
 /// `GET /v1/ontology`.
 pub async fn ontology(State(st): State<AppState>) -> Response {
-    axum::Json(st.service.ontology()).into_response()
+    axum::Json(st.service.ontology().await).into_response()
 }
 
 /// `GET /healthz`: the process answers.
@@ -120,16 +138,16 @@ pub async fn healthz() -> Response {
     axum::Json(serde_json::json!({"status": "ok"})).into_response()
 }
 
-/// `GET /readyz`: every configured component is loaded, or a 503 that lists what is not.
-pub async fn readyz(State(st): State<AppState>) -> Result<Response, ApiError> {
-    let r = st.service.readiness()?;
-    Ok(axum::Json(serde_json::json!({
-        "status": "ready",
-        "components": r.components,
-        // /v1/infer needs an embedder, reporters and a labeler; what the config leaves out.
-        "infer": {"ready": r.infer_blockers.is_empty(), "not_ready": r.infer_blockers},
-    }))
-    .into_response())
+/// `GET /readyz`: each component's state; 503 when `/v1/infer` (if configured) cannot serve or
+/// the store refuses writes.
+pub async fn readyz(State(st): State<AppState>) -> Response {
+    let r = st.service.readiness();
+    let status = if r.ready {
+        axum::http::StatusCode::OK
+    } else {
+        axum::http::StatusCode::SERVICE_UNAVAILABLE
+    };
+    (status, axum::Json(r.body)).into_response()
 }
 
 /// `GET /metrics`: Prometheus text.

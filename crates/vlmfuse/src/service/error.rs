@@ -39,6 +39,9 @@ pub enum ServiceError {
     /// A second feedback for a round, with other labels.
     #[error("{0}")]
     Conflict(String),
+    /// An idempotency key that names another request (other body or route).
+    #[error("{0}")]
+    IdempotencyKeyReused(String),
     /// A component the request needs is not loaded, or the writer refuses writes.
     #[error("{message}")]
     NotReady {

@@ -1,27 +1,106 @@
 //! `/v1/fuse` and the one fuse-and-store path that `/v1/infer` shares, plus feedback.
 
-use super::writer::{Cmd, FeedbackDone};
+use super::writer::{Cmd, FeedbackDone, Idem, Inserted};
 use super::{Service, ServiceError};
 use crate::wire::{feedback_out, fuse_out, FeedbackOut, FuseOut};
 use serde_json::Value;
+use sha2::{Digest, Sha256};
 use std::time::Instant;
 use tokio::sync::oneshot;
 use vlmfuse_fusion::{FusionError, RoundRecord};
 use vlmfuse_store::{round_id, NewRound};
 
-/// What `/v1/fuse` answers: the rounds, and whether the request was a batch.
-pub struct Fused {
-    pub rounds: Vec<FuseOut>,
-    pub batch: bool,
+/// The answer of a storing route (`/v1/fuse`, `/v1/infer`): the JSON body, and whether it
+/// repeats the stored answer of an earlier request with the same idempotency key.
+pub struct Answer {
+    pub body: Value,
+    pub replayed: bool,
+}
+
+/// Turns a request's numbered rounds into its JSON answer. The same function writes the answer
+/// a keyed request stores and the one it sends, so a retry gets exactly the first answer.
+pub type Render = Box<dyn FnOnce(Vec<FuseOut>) -> Value + Send>;
+
+/// A request's idempotency key and a hash of what it asked.
+pub struct IdemRequest {
+    pub key: String,
+    pub fingerprint: String,
+}
+
+/// Longest idempotency key.
+pub const MAX_KEY_LEN: usize = 255;
+
+/// The request's idempotency key, from the `Idempotency-Key` header or the body's
+/// `request_id` (the same key if both are given): 1 to 255 visible ASCII characters.
+pub fn idempotency_key(
+    header: Option<&str>,
+    field: Option<&str>,
+) -> Result<Option<String>, ServiceError> {
+    let key = match (header, field) {
+        (Some(h), Some(f)) if h != f => {
+            return Err(ServiceError::Invalid(format!(
+                "the Idempotency-Key header ({h:?}) and request_id ({f:?}) differ; send one, \
+                 or the same key in both"
+            )))
+        }
+        (Some(k), _) | (None, Some(k)) => k,
+        (None, None) => return Ok(None),
+    };
+    if key.is_empty() || key.len() > MAX_KEY_LEN || !key.bytes().all(|b| b.is_ascii_graphic()) {
+        return Err(ServiceError::Invalid(format!(
+            "idempotency key {key:?} must be 1 to {MAX_KEY_LEN} visible ASCII characters"
+        )));
+    }
+    Ok(Some(key.to_string()))
+}
+
+/// Hex SHA-256 of the given parts, each length-prefixed (so that parts cannot run together).
+pub fn fingerprint(parts: &[&[u8]]) -> String {
+    let mut h = Sha256::new();
+    for p in parts {
+        h.update((p.len() as u64).to_le_bytes());
+        h.update(p);
+    }
+    h.finalize().iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// Sets each round's id from the first `seq`.
+fn number(rounds: &mut [FuseOut], first: u64) {
+    for (i, r) in rounds.iter_mut().enumerate() {
+        r.round_id = round_id(first + i as u64);
+    }
+}
+
+/// Removes and returns a top-level `request_id` string field.
+fn take_request_id(body: &mut Value) -> Result<Option<String>, ServiceError> {
+    let Some(obj) = body.as_object_mut() else {
+        return Ok(None);
+    };
+    match obj.remove("request_id") {
+        None | Some(Value::Null) => Ok(None),
+        Some(Value::String(s)) => Ok(Some(s)),
+        Some(_) => Err(ServiceError::Invalid(
+            "\"request_id\" must be a string (an idempotency key)".into(),
+        )),
+    }
 }
 
 impl Service {
-    /// `POST /v1/fuse`: one SPEC §8 round (without truth) or `{"rounds": [...]}`.
-    pub async fn fuse(&self, body: Value) -> Result<Fused, ServiceError> {
+    /// `POST /v1/fuse`: one SPEC §8 round (without truth) or `{"rounds": [...]}`, with an
+    /// optional idempotency key (`key` from the header, or the body's `request_id`).
+    pub async fn fuse(&self, mut body: Value, key: Option<&str>) -> Result<Answer, ServiceError> {
         let delay = self.hooks.fuse_delay();
         if !delay.is_zero() {
             tokio::time::sleep(delay).await;
         }
+        let field = take_request_id(&mut body)?;
+        let idem = idempotency_key(key, field.as_deref())?.map(|key| IdemRequest {
+            key,
+            fingerprint: fingerprint(&[
+                b"/v1/fuse",
+                &serde_json::to_vec(&body).unwrap_or_default(),
+            ]),
+        });
         let (records, batch) = parse_fuse_body(body, self.cfg.limits.max_batch_rounds)?;
         let records = records
             .into_iter()
@@ -30,8 +109,16 @@ impl Service {
                 (rec, request)
             })
             .collect();
-        let rounds = self.fuse_and_store(records, batch).await?;
-        Ok(Fused { rounds, batch })
+        let render: Render = Box::new(move |mut rounds| {
+            if batch {
+                serde_json::to_value(crate::wire::FuseBatchOut { rounds })
+            } else {
+                serde_json::to_value(rounds.remove(0))
+            }
+            .unwrap_or_else(|e| serde_json::json!({"error": format!("serialising: {e}")}))
+        });
+        self.fuse_and_store(records, batch, "/v1/fuse", idem, render)
+            .await
     }
 
     /// The one store/fuse path of /v1/fuse and /v1/infer: validates every record, infers each
@@ -42,15 +129,22 @@ impl Service {
         &self,
         records: Vec<(RoundRecord, Value)>,
         batch: bool,
-    ) -> Result<Vec<FuseOut>, ServiceError> {
+        route: &'static str,
+        idem: Option<IdemRequest>,
+        render: Render,
+    ) -> Result<Answer, ServiceError> {
         let shared = self.shared.clone();
         let metrics = self.metrics.clone();
+        let hold = self.hooks.fuse_hold();
         // Inference is CPU work (about a millisecond at a 10k bank): off the async threads,
         // under a read lock only, so concurrent fuse requests run in parallel and feedback waits
         // for none.
         let (outs, new_rounds) = tokio::task::spawn_blocking(move || {
             metrics.scope(|| {
-                let eng = shared.engine.read().unwrap_or_else(|e| e.into_inner());
+                let eng = shared.engine.blocking_read();
+                if !hold.is_zero() {
+                    std::thread::sleep(hold);
+                }
                 let mut dim = eng.dim();
                 let mut parsed = Vec::with_capacity(records.len());
                 for (idx, (rec, request)) in records.into_iter().enumerate() {
@@ -100,17 +194,78 @@ impl Service {
         .map_err(|e| ServiceError::Internal(format!("inference task failed: {e}")))??;
 
         let (tx, rx) = oneshot::channel();
+        let mut outs = Some(outs);
+        let mut render = Some(render);
+        let idem = idem.map(|i| {
+            let (mut outs, render) = (outs.take().expect("once"), render.take().expect("once"));
+            Idem {
+                key: i.key,
+                route,
+                fingerprint: i.fingerprint,
+                render: Box::new(move |first| {
+                    number(&mut outs, first);
+                    render(outs)
+                }),
+            }
+        });
         self.send(Cmd::Insert {
             rounds: new_rounds,
+            idem,
             reply: tx,
         })?;
-        let first = rx.await.map_err(|_| ServiceError::WriterStopped)??;
-
-        let mut rounds = outs;
-        for (i, r) in rounds.iter_mut().enumerate() {
-            r.round_id = round_id(first + i as u64);
+        let delay = self.hooks.after_queue_delay();
+        if !delay.is_zero() {
+            tokio::time::sleep(delay).await;
         }
-        Ok(rounds)
+        match rx.await.map_err(|_| ServiceError::WriterStopped)?? {
+            Inserted::Replay(body) => Ok(Answer {
+                body,
+                replayed: true,
+            }),
+            Inserted::Fresh {
+                body: Some(body), ..
+            } => Ok(Answer {
+                body,
+                replayed: false,
+            }),
+            Inserted::Fresh { first, body: None } => {
+                let (mut outs, render) = (
+                    outs.take().ok_or(ServiceError::WriterStopped)?,
+                    render.take().ok_or(ServiceError::WriterStopped)?,
+                );
+                number(&mut outs, first);
+                Ok(Answer {
+                    body: render(outs),
+                    replayed: false,
+                })
+            }
+        }
+    }
+
+    /// The stored answer of an idempotency key, if the key names this very request; an error
+    /// if it names another; `None` if it is new (or expired). `/v1/infer` asks before it runs
+    /// any model; the writer checks again when it stores.
+    pub(super) async fn replay(
+        &self,
+        route: &'static str,
+        idem: &IdemRequest,
+    ) -> Result<Option<Answer>, ServiceError> {
+        let (tx, rx) = oneshot::channel();
+        self.send(Cmd::LookupKey {
+            key: idem.key.clone(),
+            reply: tx,
+        })?;
+        match rx.await.map_err(|_| ServiceError::WriterStopped)?? {
+            Some(rec) if rec.route == route && rec.fingerprint == idem.fingerprint => {
+                metrics::counter!("vlmfuse_idempotent_replays_total").increment(1);
+                Ok(Some(Answer {
+                    body: rec.response,
+                    replayed: true,
+                }))
+            }
+            Some(rec) => Err(super::writer::key_reused(&idem.key, route, &rec.route)),
+            None => Ok(None),
+        }
     }
 
     /// `POST /v1/feedback`: labels a fused round; idempotent per round. Returns the answer and
@@ -121,7 +276,7 @@ impl Service {
         labels: &[String],
     ) -> Result<(FeedbackOut, bool), ServiceError> {
         let truth = {
-            let eng = self.shared.engine.read().unwrap_or_else(|e| e.into_inner());
+            let eng = self.shared.engine.read().await;
             eng.encode_truth(labels)?
         };
         let (tx, rx) = oneshot::channel();
@@ -133,7 +288,7 @@ impl Service {
             reply: tx,
         })?;
         let done: FeedbackDone = rx.await.map_err(|_| ServiceError::WriterStopped)??;
-        let eng = self.shared.engine.read().unwrap_or_else(|e| e.into_inner());
+        let eng = self.shared.engine.read().await;
         Ok((feedback_out(&eng, &done), done.repeated))
     }
 }

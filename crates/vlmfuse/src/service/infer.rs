@@ -2,6 +2,7 @@
 //! reporters in parallel → labeler → the /v1/fuse store path. Blocking steps run off the async
 //! threads: decoding on the blocking pool, the models on their own workers.
 
+use super::fuse::{fingerprint, idempotency_key, Answer, IdemRequest, Render};
 use super::{Service, ServiceError};
 use crate::wire::{ClipOut, InferClipOut, Ordered, ReporterOut};
 use serde_json::{json, Value};
@@ -17,12 +18,8 @@ pub struct Upload {
     pub file_name: Option<String>,
     pub bytes: u64,
     pub upload_ms: f64,
-}
-
-/// What `/v1/infer` answers: one entry per clip, and whether the request was a batch.
-pub struct Inferred {
-    pub clips: Vec<InferClipOut>,
-    pub batch: bool,
+    /// SHA-256 of the clip's bytes: what an idempotency key's request is recognised by.
+    pub sha256: [u8; 32],
 }
 
 /// A clip that went through every stage up to fusion.
@@ -104,9 +101,35 @@ impl Service {
         })
     }
 
-    /// Processes every clip, then fuses and stores them together (all or nothing).
-    pub async fn infer(&self, uploads: Vec<Upload>) -> Result<Inferred, ServiceError> {
+    /// Processes every clip, then fuses and stores them together (all or nothing). With an
+    /// idempotency key (header or `request_id` part) a repeat of a stored request answers the
+    /// stored answer before any model runs.
+    pub async fn infer(
+        &self,
+        uploads: Vec<Upload>,
+        header_key: Option<&str>,
+        field_key: Option<&str>,
+    ) -> Result<Answer, ServiceError> {
         self.check_infer_ready()?;
+        let idem = match idempotency_key(header_key, field_key)? {
+            None => None,
+            Some(key) => {
+                let mut parts: Vec<&[u8]> = vec![b"/v1/infer"];
+                for u in &uploads {
+                    parts.push(u.file_name.as_deref().unwrap_or("").as_bytes());
+                    parts.push(&u.sha256);
+                }
+                Some(IdemRequest {
+                    key,
+                    fingerprint: fingerprint(&parts),
+                })
+            }
+        };
+        if let Some(i) = &idem {
+            if let Some(answer) = self.replay("/v1/infer", i).await? {
+                return Ok(answer);
+            }
+        }
         let batch = uploads.len() > 1;
         let mut processed = Vec::with_capacity(uploads.len());
         for up in &uploads {
@@ -117,26 +140,36 @@ impl Service {
             .map(|p| (p.record.clone(), std::mem::take(&mut p.request)))
             .collect();
         let fuse_start = Instant::now();
-        let fused = self.fuse_and_store(records, batch).await?;
-        let fuse_ms = stage("fuse", fuse_start);
+        let render: Render = Box::new(move |fused| {
+            let fuse_ms = fuse_start.elapsed().as_secs_f64() * 1e3;
+            let mut clips: Vec<InferClipOut> = fused
+                .into_iter()
+                .zip(processed)
+                .map(|(fused, p)| {
+                    let mut timings = p.timings;
+                    timings.push(("fuse".into(), fuse_ms));
+                    InferClipOut {
+                        fused,
+                        reporters: Ordered(p.reporters),
+                        failed: Ordered(p.failed),
+                        clip: p.clip,
+                        timings_ms: Ordered(timings),
+                    }
+                })
+                .collect();
+            if batch {
+                serde_json::to_value(crate::wire::InferBatchOut { clips })
+            } else {
+                serde_json::to_value(clips.remove(0))
+            }
+            .unwrap_or_else(|e| json!({"error": format!("serialising: {e}")}))
+        });
+        let answer = self
+            .fuse_and_store(records, batch, "/v1/infer", idem, render)
+            .await?;
+        stage("fuse", fuse_start);
         drop(uploads);
-
-        let clips = fused
-            .into_iter()
-            .zip(processed)
-            .map(|(fused, p)| {
-                let mut timings = p.timings;
-                timings.push(("fuse".into(), fuse_ms));
-                InferClipOut {
-                    fused,
-                    reporters: Ordered(p.reporters),
-                    failed: Ordered(p.failed),
-                    clip: p.clip,
-                    timings_ms: Ordered(timings),
-                }
-            })
-            .collect();
-        Ok(Inferred { clips, batch })
+        Ok(answer)
     }
 
     /// Decode, embed, report and label one clip.

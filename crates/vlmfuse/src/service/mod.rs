@@ -4,8 +4,9 @@
 //! [`crate::wire`] or a [`ServiceError`]. The HTTP layer (`crate::http`) reads requests, calls
 //! these methods and maps errors to statuses.
 //!
-//! Reads (`fuse` inference, `state`) take the engine's read lock; the writer ([`writer`]) is the
-//! only code that takes the write lock. The database (vlmfuse-store) is the truth the engine is
+//! Reads (`fuse` inference, `state`) take the engine's read lock (tokio's: an async path waits
+//! for it without holding a runtime thread); the writer ([`writer`]) is the only code that takes
+//! the write lock. The database (vlmfuse-store) is the truth the engine is
 //! rebuilt from on start.
 
 mod error;
@@ -13,20 +14,27 @@ mod fuse;
 mod infer;
 mod label;
 pub mod pipeline;
+mod readiness;
 pub mod writer;
 
 pub use error::ServiceError;
-pub use fuse::Fused;
+pub use fuse::{fingerprint, idempotency_key, Answer, IdemRequest};
+
+/// Longest idempotency key (`Idempotency-Key` or `request_id`).
+pub fn fuse_max_key_len() -> usize {
+    fuse::MAX_KEY_LEN
+}
 pub(crate) use infer::stage;
-pub use infer::{Inferred, Upload};
+pub use infer::Upload;
 pub use label::Labelled;
 pub use pipeline::Pipeline;
+pub use readiness::Readiness;
 
 use crate::config::Config;
 use crate::telemetry::Metrics;
 use crate::wire::{state_out, OntologyOut, StateOut};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{mpsc, Arc, Mutex, RwLock};
+use std::sync::{mpsc, Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 use vlmfuse_fusion::Engine;
@@ -38,6 +46,8 @@ use writer::{Cmd, Shared};
 #[derive(Default)]
 pub struct TestHooks {
     fuse_delay_ms: AtomicU64,
+    fuse_hold_ms: AtomicU64,
+    after_queue_ms: AtomicU64,
 }
 
 impl TestHooks {
@@ -50,13 +60,27 @@ impl TestHooks {
     fn fuse_delay(&self) -> Duration {
         Duration::from_millis(self.fuse_delay_ms.load(Ordering::Relaxed))
     }
-}
 
-/// What `/readyz` reports when nothing is broken.
-pub struct Readiness {
-    pub components: Vec<String>,
-    /// Why `/v1/infer` cannot run (empty when it can).
-    pub infer_blockers: Vec<String>,
+    /// Every `/v1/fuse` holds the engine's read lock this much longer (a long batch).
+    pub fn set_fuse_hold(&self, d: Duration) {
+        self.fuse_hold_ms
+            .store(d.as_millis() as u64, Ordering::Relaxed);
+    }
+
+    /// Every round-storing request waits this long after its rounds are queued for the writer
+    /// (so that a request timeout lands after the commit was decided).
+    pub fn set_after_queue_delay(&self, d: Duration) {
+        self.after_queue_ms
+            .store(d.as_millis() as u64, Ordering::Relaxed);
+    }
+
+    fn after_queue_delay(&self) -> Duration {
+        Duration::from_millis(self.after_queue_ms.load(Ordering::Relaxed))
+    }
+
+    fn fuse_hold(&self) -> Duration {
+        Duration::from_millis(self.fuse_hold_ms.load(Ordering::Relaxed))
+    }
 }
 
 pub struct Service {
@@ -66,6 +90,9 @@ pub struct Service {
     pipeline: Arc<Pipeline>,
     metrics: Metrics,
     hooks: TestHooks,
+    health: Arc<readiness::Health>,
+    /// Aborts the reporter probes when the service is dropped.
+    _probes: Option<readiness::ProbeTask>,
 }
 
 /// The prefix of every spooled upload; only such files are ever removed from the spool.
@@ -138,7 +165,7 @@ impl Service {
         );
         metrics.scope(|| writer::publish_gauges(&engine));
         let shared = Arc::new(Shared {
-            engine: RwLock::new(engine),
+            engine: tokio::sync::RwLock::new(engine),
             rounds: AtomicU64::new(loaded.next_seq),
             broken: AtomicBool::new(false),
             broken_reason: Mutex::new(None),
@@ -153,16 +180,52 @@ impl Service {
             secs = start.elapsed().as_secs_f64(),
             "clip pipeline loaded"
         );
-        let (tx, writer) =
-            writer::spawn(store, shared.clone(), metrics.clone()).context("writer thread")?;
+        // A configured embedder's output dimension is the context dimension: fixed now, so a
+        // `/v1/fuse` round of another dimension is refused (422) rather than fixing it for
+        // good, and a data directory written under another dimension is refused here. Without
+        // an embedder the first stored round fixes it.
+        if let Some(emb) = &pipeline.embedder {
+            let d = emb.dim();
+            let mut eng = shared.engine.write().await;
+            match eng.dim() {
+                Some(stored) if stored != d => anyhow::bail!(
+                    "the data directory {} holds rounds with {stored}-dimensional contexts, but \
+                     the configured embedder ({}) produces {d}-dimensional ones; use another \
+                     data directory (server.data_dir) or the embedder the rounds were written with",
+                    cfg.server.data_dir.display(),
+                    cfg.embedder
+                        .as_ref()
+                        .map(|e| e.weights.describe())
+                        .unwrap_or_default()
+                ),
+                Some(_) => {}
+                None => eng
+                    .fix_dim(d)
+                    .context("fixing the context dimension to the embedder's")?,
+            }
+        }
+        let (tx, writer) = writer::spawn(
+            store,
+            shared.clone(),
+            metrics.clone(),
+            Duration::from_secs_f64(cfg.limits.idempotency_ttl_s),
+        )
+        .context("writer thread")?;
+        let pipeline = Arc::new(pipeline);
+        let (health, probes) = readiness::start_probes(
+            &pipeline,
+            Duration::from_secs_f64(cfg.server.probe_interval_s),
+        );
         Ok((
             Service {
                 shared,
                 tx,
                 cfg,
-                pipeline: Arc::new(pipeline),
+                pipeline,
                 metrics,
                 hooks: TestHooks::default(),
+                health,
+                _probes: probes,
             },
             writer,
         ))
@@ -194,52 +257,15 @@ impl Service {
         })
     }
 
-    /// Components that are configured but not ready, each with its reason (a failed load of
-    /// the embedder, a reporter or the labeler is listed here).
-    pub fn not_ready(&self) -> Vec<String> {
-        let mut out = Vec::new();
-        if self.shared.broken.load(Ordering::SeqCst) {
-            out.push(format!("store: {}", self.shared.broken_reason()));
-        }
-        out.extend(self.pipeline.failed.iter().cloned());
-        out
-    }
-
-    /// `/readyz`: the loaded components, or what is not ready.
-    pub fn readiness(&self) -> Result<Readiness, ServiceError> {
-        let not_ready = self.not_ready();
-        if !not_ready.is_empty() {
-            return Err(ServiceError::NotReady {
-                message: format!("not ready: {}", not_ready.join("; ")),
-                not_ready,
-            });
-        }
-        let p = &self.pipeline;
-        let mut components = vec!["store".to_string(), "engine".to_string()];
-        if p.embedder.is_some() {
-            components.push("embedder".into());
-        }
-        for r in &p.reporters {
-            components.push(format!("reporter {}", r.reporter.name()));
-        }
-        if p.labeler.is_some() {
-            components.push(format!("labeler {}", p.labeler_name));
-        }
-        Ok(Readiness {
-            components,
-            infer_blockers: p.infer_blockers(),
-        })
-    }
-
     /// `GET /v1/state`.
-    pub fn state(&self) -> StateOut {
-        let eng = self.shared.engine.read().unwrap_or_else(|e| e.into_inner());
+    pub async fn state(&self) -> StateOut {
+        let eng = self.shared.engine.read().await;
         state_out(&eng, self.shared.rounds.load(Ordering::SeqCst))
     }
 
     /// `GET /v1/ontology`.
-    pub fn ontology(&self) -> OntologyOut {
-        let eng = self.shared.engine.read().unwrap_or_else(|e| e.into_inner());
+    pub async fn ontology(&self) -> OntologyOut {
+        let eng = self.shared.engine.read().await;
         OntologyOut {
             labels: eng.ontology().labels().to_vec(),
         }

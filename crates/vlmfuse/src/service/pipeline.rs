@@ -25,6 +25,8 @@ pub struct Pipeline {
     /// Configured reporters that failed to load (also in `failed`): /v1/infer runs without
     /// them and names them in every response's `failed`.
     pub unloaded_reporters: Vec<(String, String)>,
+    /// The loaded remote reporters, which the readiness probe asks `GET /v1/models`.
+    pub remote: Vec<(String, Arc<vlmfuse_models::OpenAiReporter>)>,
     /// Without a clip pipeline the labeler is not loaded at startup; `/v1/label` loads it here.
     lazy_labeler: Option<Arc<LazyLabeler>>,
 }
@@ -94,8 +96,9 @@ impl Pipeline {
                         .await
                         .map_err(|e| LabelerUnavailable(format!("labeler: load panicked: {e}")))?
                         .map_err(|e| {
-                            tracing::error!("labeler not loaded: {e:#}");
-                            LabelerUnavailable(format!("labeler: {e:#}"))
+                            let why = one_line(&e);
+                            tracing::error!("labeler not loaded: {why}");
+                            LabelerUnavailable(format!("labeler: {why}"))
                         })?;
                     tracing::info!(
                         labeler = l.name(),
@@ -164,25 +167,26 @@ impl Pipeline {
                 let name = entry.name();
                 let timeout = Duration::from_secs_f64(entry.round_timeout_s);
                 let name_for_pool = name.clone();
-                let task =
-                    tokio::task::spawn_blocking(move || -> anyhow::Result<Arc<dyn Reporter>> {
-                        Ok(match entry.backend {
-                            ReporterBackend::Openai(mut c) => {
-                                c.name = Some(entry_name(&c.name, &c.model));
-                                Arc::new(vlmfuse_models::OpenAiReporter::new(c)?)
-                            }
-                            ReporterBackend::Candle(c) => {
-                                let r = vlmfuse_models::CandleVlmReporter::load(c)?;
-                                let pool = BackendPool::new(
-                                    name_for_pool,
-                                    Arc::new(r),
-                                    PoolConfig::default(),
-                                )
-                                .context("reporter worker")?;
-                                Arc::new(pool)
-                            }
-                        })
-                    });
+                type Loaded = (
+                    Arc<dyn Reporter>,
+                    Option<Arc<vlmfuse_models::OpenAiReporter>>,
+                );
+                let task = tokio::task::spawn_blocking(move || -> anyhow::Result<Loaded> {
+                    Ok(match entry.backend {
+                        ReporterBackend::Openai(mut c) => {
+                            c.name = Some(entry_name(&c.name, &c.model));
+                            let r = Arc::new(vlmfuse_models::OpenAiReporter::new(c)?);
+                            (r.clone() as Arc<dyn Reporter>, Some(r))
+                        }
+                        ReporterBackend::Candle(c) => {
+                            let r = vlmfuse_models::CandleVlmReporter::load(c)?;
+                            let pool =
+                                BackendPool::new(name_for_pool, Arc::new(r), PoolConfig::default())
+                                    .context("reporter worker")?;
+                            (Arc::new(pool) as Arc<dyn Reporter>, None)
+                        }
+                    })
+                });
                 (name, timeout, task)
             })
             .collect();
@@ -207,7 +211,7 @@ impl Pipeline {
             None => p.not_configured.push("embedder: not configured".into()),
             Some(task) => match task.await {
                 Ok(Ok(e)) => p.embedder = Some(e),
-                Ok(Err(e)) => p.failed.push(format!("embedder: {e:#}")),
+                Ok(Err(e)) => p.failed.push(format!("embedder: {}", one_line(&e))),
                 Err(e) => p.failed.push(format!("embedder: load panicked: {e}")),
             },
         }
@@ -217,11 +221,17 @@ impl Pipeline {
         }
         for (name, timeout, task) in reporters {
             match task.await {
-                Ok(Ok(reporter)) => p.reporters.push(RoundReporter::new(reporter, timeout)),
+                Ok(Ok((reporter, remote))) => {
+                    if let Some(r) = remote {
+                        p.remote.push((name, r));
+                    }
+                    p.reporters.push(RoundReporter::new(reporter, timeout));
+                }
                 Ok(Err(e)) => {
-                    p.failed.push(format!("reporter {name}: {e:#}"));
+                    let why = one_line(&e);
+                    p.failed.push(format!("reporter {name}: {why}"));
                     p.unloaded_reporters
-                        .push((name, format!("not loaded at startup: {e:#}")));
+                        .push((name, format!("not loaded at startup: {why}")));
                 }
                 Err(e) => {
                     p.failed
@@ -248,7 +258,7 @@ impl Pipeline {
                     p.labeler_name = l.name().to_string();
                     p.labeler = Some(l);
                 }
-                Ok(Err(e)) => p.failed.push(format!("labeler: {e:#}")),
+                Ok(Err(e)) => p.failed.push(format!("labeler: {}", one_line(&e))),
                 Err(e) => p.failed.push(format!("labeler: load panicked: {e}")),
             },
         }
@@ -379,6 +389,50 @@ fn pooled_labeler<L: vlmfuse_labeler::BlockingLabeler>(l: L) -> anyhow::Result<A
     Ok(Arc::new(pool))
 }
 
+/// An error chain as one line: each cause's first line, joined by ": ". `{:#}` alone is not
+/// enough: some errors (candle's, under `RUST_BACKTRACE=1`) carry a backtrace in their own
+/// message, which put 40 frames of build paths into `/readyz`.
+pub fn one_line(e: &anyhow::Error) -> String {
+    let mut parts: Vec<String> = Vec::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        let Some(first) = text.lines().map(str::trim).find(|l| !l.is_empty()) else {
+            continue;
+        };
+        // A wrapper often repeats its source's message.
+        if !parts.last().is_some_and(|p| p.contains(first)) {
+            parts.push(first.to_string());
+        }
+    }
+    parts.join(": ")
+}
+
 fn entry_name(name: &Option<String>, model: &str) -> String {
     name.clone().unwrap_or_else(|| model.to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::one_line;
+
+    /// A cause whose message carries a backtrace (candle's `WithBacktrace` does) is cut to its
+    /// first line; the chain stays.
+    #[test]
+    fn load_errors_are_one_line() {
+        #[derive(Debug)]
+        struct WithBacktrace;
+        impl std::fmt::Display for WithBacktrace {
+            fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                write!(f, "cannot find tensor visual_projection.weight\n   0: candle_core::error\n             at /root/.cargo/registry/src/x.rs:12\n   1: main")
+            }
+        }
+        impl std::error::Error for WithBacktrace {}
+        let e = anyhow::Error::new(WithBacktrace).context("models/clip (cpu)");
+        let s = one_line(&e);
+        assert_eq!(
+            s,
+            "models/clip (cpu): cannot find tensor visual_projection.weight"
+        );
+        assert!(!s.contains('\n'));
+    }
 }

@@ -14,20 +14,28 @@ use super::ServiceError;
 use crate::telemetry::Metrics;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc;
-use std::sync::{Arc, Mutex, RwLock};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 use tokio::sync::oneshot;
+use tokio::sync::RwLock;
 use vlmfuse_fusion::{Engine, FusionError, LabelledRound};
-use vlmfuse_store::{parse_round_id, NewRound, Store, StoredFeedback};
+use vlmfuse_store::{parse_round_id, IdempotencyRecord, NewRound, Store, StoredFeedback};
 
 /// Most commands taken off the queue into one group.
 const MAX_GROUP: usize = 256;
 
 pub enum Cmd {
-    /// Store rounds; replies with the first `seq` (the rest follow consecutively).
+    /// Store rounds; replies with the first `seq` (the rest follow consecutively), or, for a
+    /// request whose idempotency key is already stored, with the stored answer.
     Insert {
         rounds: Vec<NewRound>,
-        reply: oneshot::Sender<Result<u64, ServiceError>>,
+        idem: Option<Idem>,
+        reply: oneshot::Sender<Result<Inserted, ServiceError>>,
+    },
+    /// The stored record of an idempotency key (not expired), if any.
+    LookupKey {
+        key: String,
+        reply: oneshot::Sender<Result<Option<IdempotencyRecord>, ServiceError>>,
     },
     /// Label a round; `truth` is already validated against the ontology.
     Feedback {
@@ -35,6 +43,41 @@ pub enum Cmd {
         truth: Vec<u8>,
         reply: oneshot::Sender<Result<FeedbackDone, ServiceError>>,
     },
+}
+
+/// The idempotency key of an insert, and how to write the answer it is stored with.
+pub struct Idem {
+    pub key: String,
+    pub route: &'static str,
+    pub fingerprint: String,
+    /// The request's answer, given the first `seq` of its rounds: stored with the key in the
+    /// rounds' own transaction, so even a request that timed out after it was queued leaves
+    /// its answer for the retry.
+    pub render: Box<dyn FnOnce(u64) -> serde_json::Value + Send>,
+}
+
+/// What an insert did.
+pub enum Inserted {
+    /// Stored from this `seq` on; `body` is the rendered answer of a keyed request.
+    Fresh {
+        first: u64,
+        body: Option<serde_json::Value>,
+    },
+    /// The key was stored already, for the same request: its answer, and nothing stored.
+    Replay(serde_json::Value),
+}
+
+/// The error for a key reused on another request.
+pub fn key_reused(key: &str, route: &str, stored_route: &str) -> ServiceError {
+    let what = if route == stored_route {
+        "a request with a different body".to_string()
+    } else {
+        format!("a request to {stored_route}")
+    };
+    ServiceError::IdempotencyKeyReused(format!(
+        "idempotency key {key:?} was already used for {what}; a retry must repeat the request \
+         exactly, and a new request needs a new key"
+    ))
 }
 
 /// An acknowledged feedback (committed), new or repeated.
@@ -49,6 +92,12 @@ pub struct FeedbackDone {
 
 /// What the handlers share with the writer.
 pub struct Shared {
+    /// tokio's lock, not std's: a batch fuse holds the read side for its whole inference and a
+    /// feedback then waits for the write side; with std's (writer-preferring) lock every later
+    /// `read()` blocked the runtime thread that called it, and two of them froze a 2-worker
+    /// runtime, `/healthz` included. Async paths `.read().await` (the task waits, the thread
+    /// does not); the writer thread and the blocking pool use `blocking_read`/`blocking_write`.
+    /// It is also fair (FIFO), so a stream of fuse requests cannot starve a feedback.
     pub engine: RwLock<Engine>,
     /// Rounds stored so far (the next `seq`).
     pub rounds: AtomicU64,
@@ -84,17 +133,51 @@ pub fn publish_gauges(engine: &Engine) {
     metrics::gauge!("vlmfuse_threshold").set(engine.threshold().scalar());
 }
 
+/// How long idempotency keys are kept, and when they were last pruned.
+struct Keys {
+    ttl_ms: i64,
+    last_prune: Option<Instant>,
+}
+
+impl Keys {
+    /// Keys created before this have expired.
+    fn not_before(&self) -> i64 {
+        vlmfuse_store::timestamp_ms().saturating_sub(self.ttl_ms)
+    }
+
+    /// Prunes expired keys at most every ten minutes (and at the first group).
+    fn maybe_prune(&mut self, store: &mut Store) {
+        if self
+            .last_prune
+            .is_some_and(|t| t.elapsed() < std::time::Duration::from_secs(600))
+        {
+            return;
+        }
+        self.last_prune = Some(Instant::now());
+        match store.prune_idempotency(self.not_before()) {
+            Ok(0) => {}
+            Ok(n) => tracing::info!(keys = n, "expired idempotency keys removed"),
+            Err(e) => tracing::warn!("pruning idempotency keys failed: {e}"),
+        }
+    }
+}
+
 pub fn spawn(
     mut store: Store,
     shared: Arc<Shared>,
     metrics: Metrics,
+    key_ttl: std::time::Duration,
 ) -> std::io::Result<(mpsc::Sender<Cmd>, std::thread::JoinHandle<()>)> {
     let (tx, rx) = mpsc::channel::<Cmd>();
     let handle = std::thread::Builder::new()
         .name("vlmfuse-writer".into())
         .spawn(move || {
             let res = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                metrics.scope(|| run(&mut store, &shared, rx))
+                let mut keys = Keys {
+                    ttl_ms: i64::try_from(key_ttl.as_millis()).unwrap_or(i64::MAX),
+                    last_prune: None,
+                };
+                metrics.scope(|| run(&mut store, &shared, &mut keys, rx))
             }));
             match res {
                 Ok(()) => tracing::info!("writer stopped: every queued write is committed"),
@@ -104,12 +187,8 @@ pub fn spawn(
     Ok((tx, handle))
 }
 
-fn run(store: &mut Store, shared: &Shared, rx: mpsc::Receiver<Cmd>) {
-    let mut dim = shared
-        .engine
-        .read()
-        .unwrap_or_else(|e| e.into_inner())
-        .dim();
+fn run(store: &mut Store, shared: &Shared, keys: &mut Keys, rx: mpsc::Receiver<Cmd>) {
+    let mut dim = shared.engine.blocking_read().dim();
     while let Ok(first) = rx.recv() {
         let mut group = vec![first];
         while group.len() < MAX_GROUP {
@@ -118,17 +197,31 @@ fn run(store: &mut Store, shared: &Shared, rx: mpsc::Receiver<Cmd>) {
                 Err(_) => break,
             }
         }
+        keys.maybe_prune(store);
         let mut inserts = Vec::new();
         for cmd in group {
             match cmd {
-                Cmd::Insert { rounds, reply } => inserts.push((rounds, reply)),
+                Cmd::Insert {
+                    rounds,
+                    idem,
+                    reply,
+                } => inserts.push((rounds, idem, reply)),
+                Cmd::LookupKey { key, reply } => {
+                    // Rounds queued before this lookup are committed first: arrival order.
+                    flush_inserts(store, shared, keys, &mut dim, std::mem::take(&mut inserts));
+                    let _ = reply.send(
+                        store
+                            .idempotency(&key, keys.not_before())
+                            .map_err(ServiceError::from),
+                    );
+                }
                 Cmd::Feedback {
                     round_id,
                     truth,
                     reply,
                 } => {
                     // Rounds queued before this feedback are committed first: arrival order.
-                    flush_inserts(store, shared, &mut dim, std::mem::take(&mut inserts));
+                    flush_inserts(store, shared, keys, &mut dim, std::mem::take(&mut inserts));
                     let res = if shared.broken.load(Ordering::SeqCst) {
                         Err(broken_error(shared))
                     } else {
@@ -138,7 +231,7 @@ fn run(store: &mut Store, shared: &Shared, rx: mpsc::Receiver<Cmd>) {
                 }
             }
         }
-        flush_inserts(store, shared, &mut dim, inserts);
+        flush_inserts(store, shared, keys, &mut dim, inserts);
     }
 }
 
@@ -150,11 +243,16 @@ fn broken_error(shared: &Shared) -> ServiceError {
     }
 }
 
-type InsertCmd = (Vec<NewRound>, oneshot::Sender<Result<u64, ServiceError>>);
+type InsertCmd = (
+    Vec<NewRound>,
+    Option<Idem>,
+    oneshot::Sender<Result<Inserted, ServiceError>>,
+);
 
 fn flush_inserts(
     store: &mut Store,
     shared: &Shared,
+    keys: &Keys,
     dim: &mut Option<usize>,
     cmds: Vec<InsertCmd>,
 ) {
@@ -162,7 +260,7 @@ fn flush_inserts(
         return;
     }
     if shared.broken.load(Ordering::SeqCst) {
-        for (_, reply) in cmds {
+        for (_, _, reply) in cmds {
             let _ = reply.send(Err(broken_error(shared)));
         }
         return;
@@ -171,8 +269,43 @@ fn flush_inserts(
     // handler has already checked against the engine, so this only catches two first requests
     // of different dimensions racing each other.
     let before = *dim;
+    let not_before = keys.not_before();
     let mut accepted: Vec<InsertCmd> = Vec::with_capacity(cmds.len());
-    for (rounds, reply) in cmds {
+    // A keyed request repeated within this group: answered with the first one's answer once
+    // it commits.
+    type Follower = (usize, oneshot::Sender<Result<Inserted, ServiceError>>);
+    let mut followers: Vec<Follower> = Vec::new();
+    for (rounds, idem, reply) in cmds {
+        if let Some(i) = &idem {
+            let earlier = accepted
+                .iter()
+                .position(|(_, other, _)| other.as_ref().is_some_and(|o| o.key == i.key));
+            if let Some(pos) = earlier {
+                let o = accepted[pos].1.as_ref().expect("keyed");
+                if o.route == i.route && o.fingerprint == i.fingerprint {
+                    followers.push((pos, reply));
+                } else {
+                    let _ = reply.send(Err(key_reused(&i.key, i.route, o.route)));
+                }
+                continue;
+            }
+            match store.idempotency(&i.key, not_before) {
+                Ok(Some(rec)) if rec.route == i.route && rec.fingerprint == i.fingerprint => {
+                    metrics::counter!("vlmfuse_idempotent_replays_total").increment(1);
+                    let _ = reply.send(Ok(Inserted::Replay(rec.response)));
+                    continue;
+                }
+                Ok(Some(rec)) => {
+                    let _ = reply.send(Err(key_reused(&i.key, i.route, &rec.route)));
+                    continue;
+                }
+                Ok(None) => {}
+                Err(e) => {
+                    let _ = reply.send(Err(e.into()));
+                    continue;
+                }
+            }
+        }
         // The handler made every round of one request the same dimension.
         let d = rounds.first().map(|r| r.round.context.len()).unwrap_or(0);
         let bad = match *dim {
@@ -190,22 +323,44 @@ fn flush_inserts(
             Some(e) => {
                 let _ = reply.send(Err(e.into()));
             }
-            None => accepted.push((rounds, reply)),
+            None => accepted.push((rounds, idem, reply)),
         }
     }
     let first_seq = shared.rounds.load(Ordering::SeqCst);
     let all: Vec<NewRound> = accepted
         .iter()
-        .flat_map(|(r, _)| r.iter().cloned())
+        .flat_map(|(r, _, _)| r.iter().cloned())
         .collect();
     if all.is_empty() {
         return;
     }
-    match store.insert_rounds(first_seq, &all) {
+    // Each keyed request's answer, rendered now so that it commits with its rounds.
+    let created_ms = vlmfuse_store::timestamp_ms();
+    let mut records = Vec::new();
+    let mut bodies: Vec<Option<serde_json::Value>> = Vec::with_capacity(accepted.len());
+    let mut replies = Vec::with_capacity(accepted.len());
+    let mut seq = first_seq;
+    for (rounds, idem, reply) in accepted {
+        let body = idem.map(|i| {
+            let body = (i.render)(seq);
+            records.push(IdempotencyRecord {
+                key: i.key,
+                route: i.route.to_string(),
+                fingerprint: i.fingerprint,
+                response: body.clone(),
+                created_ms,
+            });
+            body
+        });
+        bodies.push(body);
+        replies.push((seq, reply));
+        seq += rounds.len() as u64;
+    }
+    match store.insert_rounds_keyed(first_seq, &all, &records) {
         Ok(()) => {
             if before.is_none() {
                 if let Some(d) = *dim {
-                    let mut eng = shared.engine.write().unwrap_or_else(|e| e.into_inner());
+                    let mut eng = shared.engine.blocking_write();
                     if let Err(e) = eng.fix_dim(d) {
                         shared.mark_broken(format!("engine refused the stored dimension: {e}"));
                     }
@@ -213,14 +368,9 @@ fn flush_inserts(
             }
             // The adaptive method learns from unlabelled rounds: each joins its pool now, in
             // `seq` order, which is the order a rebuild replays them in.
-            let observe = shared
-                .engine
-                .read()
-                .unwrap_or_else(|e| e.into_inner())
-                .method()
-                != vlmfuse_fusion::Method::Paper;
+            let observe = shared.engine.blocking_read().method() != vlmfuse_fusion::Method::Paper;
             if observe {
-                let mut eng = shared.engine.write().unwrap_or_else(|e| e.into_inner());
+                let mut eng = shared.engine.blocking_write();
                 for (i, r) in all.iter().enumerate() {
                     let seq = first_seq + i as u64;
                     if let Err(e) = eng.observe(seq, &r.round, &r.inference) {
@@ -236,16 +386,26 @@ fn flush_inserts(
                 .rounds
                 .store(first_seq + all.len() as u64, Ordering::SeqCst);
             metrics::counter!("vlmfuse_rounds_stored_total").increment(all.len() as u64);
-            let mut seq = first_seq;
-            for (rounds, reply) in accepted {
-                let _ = reply.send(Ok(seq));
-                seq += rounds.len() as u64;
+            for (pos, reply) in followers {
+                let res = match &bodies[pos] {
+                    Some(b) => Ok(Inserted::Replay(b.clone())),
+                    None => Err(ServiceError::Internal(
+                        "a keyed request lost its answer".into(),
+                    )),
+                };
+                let _ = reply.send(res);
+            }
+            for ((seq, reply), body) in replies.into_iter().zip(bodies) {
+                let _ = reply.send(Ok(Inserted::Fresh { first: seq, body }));
             }
         }
         Err(e) => {
             *dim = before;
             let msg = e.to_string();
-            for (_, reply) in accepted {
+            for (_, reply) in replies {
+                let _ = reply.send(Err(ServiceError::NotStored(msg.clone())));
+            }
+            for (_, reply) in followers {
                 let _ = reply.send(Err(ServiceError::NotStored(msg.clone())));
             }
         }
@@ -275,14 +435,14 @@ fn feedback(
                 repeated: true,
             });
         }
-        let eng = shared.engine.read().unwrap_or_else(|e| e.into_inner());
+        let eng = shared.engine.blocking_read();
         return Err(ServiceError::Conflict(format!(
             "round {round_id} was already labelled {:?}; feedback is final per round",
             eng.ontology().decode(&prev.truth)
         )));
     }
     let (outcome, labelled_order) = {
-        let eng = shared.engine.read().unwrap_or_else(|e| e.into_inner());
+        let eng = shared.engine.blocking_read();
         let o = eng.credit(
             &stored.inference.signals,
             &stored.inference.w_used,
@@ -301,7 +461,7 @@ fn feedback(
     store.insert_feedback(std::slice::from_ref(&fb))?;
     // Committed: from here the database holds the feedback, so the engine must follow.
     {
-        let mut eng = shared.engine.write().unwrap_or_else(|e| e.into_inner());
+        let mut eng = shared.engine.blocking_write();
         let lr = LabelledRound {
             seq,
             round: stored.round,

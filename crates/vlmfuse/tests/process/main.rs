@@ -3,6 +3,9 @@
 
 mod eval_cli;
 mod label_cli;
+mod readiness;
 mod replay;
 mod shutdown;
+mod slowloris;
+mod soak;
 mod support;

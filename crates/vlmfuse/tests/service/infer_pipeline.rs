@@ -183,11 +183,19 @@ async fn a_reporter_that_fails_to_load_is_listed_by_readyz_and_left_out_of_round
     cfg += &fake.reporter_toml("videollama2", "frames");
     cfg += &fake.labeler_toml();
     let srv = TestApp::from_toml(tmp.path(), &cfg).await;
+    // /v1/infer still serves with videollama2: ready, with vlaad not ready and why.
     let ready = srv.get("/readyz").await;
     let rv = ready.json();
-    assert_eq!(ready.status, 503, "{rv}");
+    assert_eq!(ready.status, 200, "{rv}");
     assert!(
         rv["not_ready"].to_string().contains("reporter vlaad"),
+        "{rv}"
+    );
+    let vlaad = &rv["components"]["reporters"]["vlaad"];
+    assert_eq!(vlaad["ready"], false, "{rv}");
+    assert_eq!(vlaad["kind"], "candle", "{rv}");
+    assert!(
+        vlaad["error"].as_str().is_some_and(|e| !e.contains('\n')),
         "{rv}"
     );
     let clip = h264_clip(tmp.path(), "a.mp4", "testsrc", 1.0);

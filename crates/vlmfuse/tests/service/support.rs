@@ -72,6 +72,11 @@ impl TestApp {
         }
     }
 
+    /// The router itself, for requests `request` cannot build (streamed bodies).
+    pub fn router(&self) -> Router {
+        self.router.clone()
+    }
+
     pub async fn get(&self, path: &str) -> Resp {
         self.request("GET", path, &[], Vec::new()).await
     }

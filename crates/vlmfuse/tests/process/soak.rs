@@ -1,0 +1,396 @@
+//! The soak test (issue 10): the real binary on loopback, 64 concurrent clients for
+//! `VLMFUSE_SOAK_S` seconds (default 20) of mixed traffic: good clips, bad uploads made here (an
+//! HLS playlist and an ffconcat list naming a file on the server's disk, a truncated clip, a
+//! 1 MiB multipart preamble), `/v1/fuse`, `/v1/feedback` and reads. It prints requests served,
+//! the status histogram, and the server's RSS (and peak), threads and open descriptors (from
+//! /proc) before, during and after the load, and the spool's leftover files; it asserts no 5xx,
+//! no thread or descriptor growth past a small slack, no leftover spool file, and that every
+//! acknowledged feedback is in the store after a `kill -9` and a restart.
+
+use crate::support::Server;
+use serde_json::{json, Value};
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use vlmfuse_testkit::clips::h264_clip;
+use vlmfuse_testkit::fixtures::clip_embedder_toml;
+use vlmfuse_testkit::multipart::{content_type, multipart};
+use vlmfuse_testkit::server::FakeOpenAi;
+
+const CLIENTS: usize = 64;
+
+#[derive(Debug, Clone, Copy)]
+struct Snap {
+    rss_mb: f64,
+    peak_rss_mb: f64,
+    threads: usize,
+    fds: usize,
+}
+
+fn snapshot(pid: u32) -> Snap {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    let field = |name: &str| -> f64 {
+        status
+            .lines()
+            .find_map(|l| l.strip_prefix(name))
+            .and_then(|v| v.split_whitespace().next())
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(0.0)
+    };
+    Snap {
+        rss_mb: field("VmRSS:") / 1024.0,
+        peak_rss_mb: field("VmHWM:") / 1024.0,
+        threads: field("Threads:") as usize,
+        fds: std::fs::read_dir(format!("/proc/{pid}/fd"))
+            .unwrap()
+            .count(),
+    }
+}
+
+fn spool_files(data: &std::path::Path) -> usize {
+    std::fs::read_dir(data.join("spool"))
+        .map(|d| d.count())
+        .unwrap_or(0)
+}
+
+/// The labels a client sends for a round: fixed per round, so a repeat is a repeat.
+fn labels_for(round_id: &str) -> Vec<&'static str> {
+    let h = round_id
+        .bytes()
+        .fold(7u32, |h, b| h.wrapping_mul(31).wrapping_add(b as u32));
+    match h % 3 {
+        0 => vec!["brake"],
+        1 => vec!["brake", "stop"],
+        _ => vec![],
+    }
+}
+
+#[derive(Clone)]
+struct Uploads {
+    good: Vec<u8>,
+    hls: Vec<u8>,
+    concat: Vec<u8>,
+    truncated: Vec<u8>,
+    preamble: Vec<u8>,
+}
+
+#[derive(Default)]
+struct Tally {
+    /// (what, status) -> count
+    statuses: Mutex<BTreeMap<(String, u16), usize>>,
+    served: AtomicUsize,
+    /// Requests that got no answer, by kind.
+    transport_errors: Mutex<BTreeMap<String, usize>>,
+    /// Acknowledged feedback: round id -> labels.
+    acked: Mutex<BTreeMap<String, Vec<&'static str>>>,
+}
+
+impl Tally {
+    fn record(&self, what: &str, status: u16) {
+        self.served.fetch_add(1, Ordering::Relaxed);
+        *self
+            .statuses
+            .lock()
+            .unwrap()
+            .entry((what.to_string(), status))
+            .or_default() += 1;
+    }
+
+    fn failed(&self, what: &str) {
+        *self
+            .transport_errors
+            .lock()
+            .unwrap()
+            .entry(what.to_string())
+            .or_default() += 1;
+    }
+}
+
+async fn client_loop(
+    c: usize,
+    base: String,
+    http: reqwest::Client,
+    dim: usize,
+    up: Arc<Uploads>,
+    tally: Arc<Tally>,
+    until: Instant,
+) {
+    let mut mine: Vec<String> = Vec::new();
+    let mut i = 0usize;
+    while Instant::now() < until {
+        i += 1;
+        let step = (c * 7 + i) % 20;
+        let (what, req) = match step {
+            0..=6 => {
+                let ctx: Vec<f64> = (0..dim)
+                    .map(|k| ((c * 31 + i * 7 + k) as f64).sin())
+                    .collect();
+                let reports = if i.is_multiple_of(2) {
+                    json!({"videollama2": ["brake"], "videollava": ["brake", "stop"]})
+                } else {
+                    json!({"videollama2": [], "videollava": ["stop"]})
+                };
+                (
+                    "fuse",
+                    http.post(format!("{base}/v1/fuse"))
+                        .json(&json!({"context": ctx, "reports": reports})),
+                )
+            }
+            7..=10 if !mine.is_empty() => {
+                let id = mine[i % mine.len()].clone();
+                let labels = labels_for(&id);
+                let r = http
+                    .post(format!("{base}/v1/feedback"))
+                    .json(&json!({"round_id": id, "labels": labels}))
+                    .send()
+                    .await;
+                match r {
+                    Ok(r) => {
+                        let s = r.status().as_u16();
+                        if s == 200 {
+                            tally.acked.lock().unwrap().insert(id, labels);
+                        }
+                        tally.record("feedback", s);
+                    }
+                    Err(_) => tally.failed("feedback"),
+                }
+                continue;
+            }
+            11 | 12 => ("clip", upload(&http, &base, up.good.clone())),
+            13 => ("hls", upload(&http, &base, up.hls.clone())),
+            14 => ("ffconcat", upload(&http, &base, up.concat.clone())),
+            15 => ("truncated", upload(&http, &base, up.truncated.clone())),
+            16 => ("preamble", upload(&http, &base, up.preamble.clone())),
+            17 => ("state", http.get(format!("{base}/v1/state"))),
+            _ => ("healthz", http.get(format!("{base}/healthz"))),
+        };
+        match req.send().await {
+            Ok(r) => {
+                let s = r.status().as_u16();
+                let body: Value = r.json().await.unwrap_or(Value::Null);
+                if what == "fuse" && s == 200 {
+                    if let Some(id) = body["round_id"].as_str() {
+                        mine.push(id.to_string());
+                    }
+                }
+                tally.record(what, s);
+            }
+            Err(_) => tally.failed(what),
+        }
+    }
+}
+
+fn upload(http: &reqwest::Client, base: &str, body: Vec<u8>) -> reqwest::RequestBuilder {
+    http.post(format!("{base}/v1/infer"))
+        .header("content-type", content_type())
+        .body(body)
+}
+
+#[test]
+fn soak_mixed_traffic_leaks_nothing_and_loses_no_feedback() {
+    let secs: f64 = std::env::var("VLMFUSE_SOAK_S")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(20.0);
+    let tmp = tempfile::tempdir().unwrap();
+    let fake = FakeOpenAi::start();
+    let mut cfg = String::from(
+        "reporters = [\"videollama2\", \"videollava\"]\n\n[media]\nframes = 4\nmax_bytes = 4000000\n\n",
+    );
+    cfg += &clip_embedder_toml(tmp.path());
+    cfg += &fake.reporter_toml("videollama2", "frames");
+    cfg += &fake.reporter_toml("videollava", "video_url");
+    cfg += &fake.labeler_toml();
+    let cfg_path = tmp.path().join("soak.toml");
+    std::fs::write(&cfg_path, cfg).unwrap();
+    let data = tmp.path().join("data");
+    let args = ["--config", cfg_path.to_str().unwrap()];
+    let mut srv = Server::start(&data, &args, &[]);
+    let pid = srv.child.id();
+
+    // Bad uploads, made now: playlists naming a file on the server's disk, a cut clip, and a
+    // body whose first boundary comes after 1 MiB.
+    let clip = h264_clip(tmp.path(), "a.mp4", "testsrc", 1.0);
+    let good_bytes = std::fs::read(&clip).unwrap();
+    let secret = tmp.path().join("secret.mp4");
+    std::fs::copy(&clip, &secret).unwrap();
+    let hls = format!(
+        "#EXTM3U\n#EXT-X-TARGETDURATION:2\n#EXTINF:2,\nfile:{}\n#EXT-X-ENDLIST\n",
+        secret.display()
+    );
+    let concat = format!("ffconcat version 1.0\nfile '{}'\n", secret.display());
+    let mut preamble = vec![b'x'; 1 << 20];
+    preamble.extend(multipart(&[("video", "a.mp4", &good_bytes)]));
+    let up = Arc::new(Uploads {
+        good: multipart(&[("video", "a.mp4", &good_bytes)]),
+        hls: multipart(&[("video", "list.m3u8", hls.as_bytes())]),
+        concat: multipart(&[("video", "list.ffconcat", concat.as_bytes())]),
+        truncated: multipart(&[("video", "t.mp4", &good_bytes[..good_bytes.len() / 3])]),
+        preamble,
+    });
+
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(4)
+        .enable_all()
+        .build()
+        .unwrap();
+    let base = format!("http://{}", srv.addr);
+    let http = reqwest::Client::builder()
+        .no_proxy()
+        .timeout(Duration::from_secs(60))
+        .build()
+        .unwrap();
+    let dim = rt
+        .block_on(async {
+            http.get(format!("{base}/readyz"))
+                .send()
+                .await?
+                .json::<Value>()
+                .await
+        })
+        .unwrap()["components"]["embedder"]["dim"]
+        .as_u64()
+        .expect("the embedder's dimension in /readyz") as usize;
+
+    let idle = snapshot(pid);
+    let tally = Arc::new(Tally::default());
+    let t0 = Instant::now();
+    let until = t0 + Duration::from_secs_f64(secs);
+    let warm = Duration::from_secs_f64((secs * 0.15).clamp(2.0, 10.0));
+    let (start, end_of_load) = rt.block_on(async {
+        let tasks: Vec<_> = (0..CLIENTS)
+            .map(|c| {
+                tokio::spawn(client_loop(
+                    c,
+                    base.clone(),
+                    http.clone(),
+                    dim,
+                    up.clone(),
+                    tally.clone(),
+                    until,
+                ))
+            })
+            .collect();
+        tokio::time::sleep(warm).await;
+        let start = snapshot(pid);
+        let left = until.saturating_duration_since(Instant::now());
+        tokio::time::sleep(left.saturating_sub(Duration::from_millis(300))).await;
+        let end = snapshot(pid);
+        for t in tasks {
+            t.await.unwrap();
+        }
+        (start, end)
+    });
+    let wall = t0.elapsed();
+    drop(http);
+    std::thread::sleep(Duration::from_secs(1));
+    let after = snapshot(pid);
+    let leftover = spool_files(&data);
+
+    let statuses = tally.statuses.lock().unwrap().clone();
+    let served = tally.served.load(Ordering::Relaxed);
+    let acked = tally.acked.lock().unwrap().clone();
+    eprintln!(
+        "soak: {CLIENTS} clients, {:.1} s: {served} requests served ({:.0}/s), no answer: {:?}, {} feedback acknowledged",
+        wall.as_secs_f64(),
+        served as f64 / wall.as_secs_f64(),
+        tally.transport_errors.lock().unwrap(),
+        acked.len()
+    );
+    for ((what, status), n) in &statuses {
+        eprintln!("  {what:>10} {status}: {n}");
+    }
+    for (name, s) in [
+        ("idle", idle),
+        ("after warm-up", start),
+        ("end of load", end_of_load),
+        ("1 s after", after),
+    ] {
+        eprintln!(
+            "  {name:>14}: rss {:.1} MB (peak {:.1} MB), {} threads, {} fds",
+            s.rss_mb, s.peak_rss_mb, s.threads, s.fds
+        );
+    }
+    eprintln!("  leftover spool files: {leftover}");
+
+    let fivexx: Vec<_> = statuses.iter().filter(|((_, s), _)| *s >= 500).collect();
+    assert!(fivexx.is_empty(), "5xx answers: {fivexx:?}");
+    // The preamble upload is refused after its first 8 KiB, and the server closes the
+    // connection rather than read the rest: a client still sending may see the close before
+    // the 400. Every other request gets an answer.
+    let unanswered: Vec<_> = tally
+        .transport_errors
+        .lock()
+        .unwrap()
+        .iter()
+        .filter(|(w, _)| w.as_str() != "preamble")
+        .map(|(w, n)| (w.clone(), *n))
+        .collect();
+    assert!(
+        unanswered.is_empty(),
+        "requests without an answer: {unanswered:?}"
+    );
+    for bad in ["hls", "ffconcat", "truncated", "preamble"] {
+        let wrong: Vec<_> = statuses
+            .iter()
+            .filter(|((w, s), _)| w == bad && !(400..500).contains(s))
+            .collect();
+        assert!(
+            wrong.is_empty(),
+            "{bad} was not refused with a 4xx: {wrong:?}"
+        );
+    }
+    let ok = |w: &str| statuses.get(&(w.to_string(), 200)).copied().unwrap_or(0);
+    assert!(
+        ok("fuse") > 0 && ok("clip") > 0 && ok("feedback") > 0,
+        "{statuses:?}"
+    );
+    assert!(
+        end_of_load.threads <= start.threads + 16,
+        "threads grew under steady load: {} -> {}",
+        start.threads,
+        end_of_load.threads
+    );
+    // Under load the count moves with the requests in flight (a connection, a spooled file and
+    // its decoder each): a leak shows as growth past one per client, and after the load.
+    assert!(
+        end_of_load.fds <= start.fds + CLIENTS,
+        "descriptors grew under steady load: {} -> {}",
+        start.fds,
+        end_of_load.fds
+    );
+    assert!(
+        after.fds <= idle.fds + 16,
+        "descriptors left open after the load: {} idle, {} after",
+        idle.fds,
+        after.fds
+    );
+    assert!(
+        end_of_load.rss_mb <= start.rss_mb * 2.0 + 100.0,
+        "RSS grew from {:.0} MB to {:.0} MB",
+        start.rss_mb,
+        end_of_load.rss_mb
+    );
+    assert_eq!(leftover, 0, "spooled uploads left behind");
+
+    // Every acknowledged feedback survives a kill -9: after a restart each repeat is answered
+    // as a repeat, and the labelled count is theirs.
+    srv.kill9();
+    let srv = Server::start(&data, &args, &[]);
+    let state = srv.state();
+    assert_eq!(
+        state["labelled_rounds"].as_u64().unwrap() as usize,
+        acked.len(),
+        "{state}"
+    );
+    for (id, labels) in &acked {
+        let r = srv.post("/v1/feedback", &json!({"round_id": id, "labels": labels}));
+        assert_eq!(r.status, 200, "{id}: {}", r.json());
+        assert_eq!(
+            r.header("x-vlmfuse-repeated"),
+            Some("true"),
+            "{id} was not stored"
+        );
+    }
+}
