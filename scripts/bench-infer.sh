@@ -8,7 +8,7 @@
 #
 #   REF_PYTHON (python3: needs torch + transformers only to write the bench model once)
 #   REQS (20) THREADS (2: embedder and labeler threads) DECODE_THREADS (1) PORT (18080)
-#   BENCH_DIR (a temporary dir)   CARGO_TARGET_DIR as usual
+#   BENCH_DIR (a temporary dir)   CARGO_TARGET_DIR as usual   VLMFUSE_BIN (a built binary: no build)
 #
 # Not run in CI (the bench model needs torch).
 set -euo pipefail
@@ -29,8 +29,10 @@ if [ ! -f "$CLIP" ]; then
     -c:v libx264 -preset ultrafast -pix_fmt yuv420p -g 30 "$CLIP"
 fi
 
-cargo build --release -p vlmfuse --bin vlmfuse
-BIN="${CARGO_TARGET_DIR:-target}/release/vlmfuse"
+if [ -n "${VLMFUSE_BIN:-}" ]; then BIN="$VLMFUSE_BIN"; else
+  cargo build --release -p vlmfuse --bin vlmfuse
+  BIN="${CARGO_TARGET_DIR:-target}/release/vlmfuse"
+fi
 
 rm -rf "$OUT/data"
 {

@@ -25,11 +25,13 @@ pub struct EmbedderConfig {
     #[arg(skip = WeightSource::local(""))]
     pub weights: WeightSource,
     /// "candle" (safetensors, CPU or CUDA) or "onnx" (an ONNX export on ONNX Runtime, CPU).
+    /// No clap default: a default counts as "given" when the flags are layered over the file,
+    /// and would switch a file's `backend = "onnx"` back to candle (the serde default applies).
     #[arg(
         long = "embedder-backend",
         env = "VLMFUSE_EMBEDDER_BACKEND",
         value_enum,
-        default_value_t = EmbedderBackend::Candle
+        required = false
     )]
     #[serde(default)]
     pub backend: EmbedderBackend,

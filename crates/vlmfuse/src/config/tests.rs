@@ -159,6 +159,28 @@ fn the_embedder_backend_is_chosen_in_the_file_and_typos_are_refused() {
     assert!(format!("{err:#}").contains("backend"), "{err:#}");
 }
 
+/// `vlmfuse serve --config FILE` with `backend = "onnx"` in the file and no flag: the flag's
+/// absence must leave the file alone (a clap default used to switch it back to candle, so an
+/// ONNX deployment silently ran candle at half the speed).
+#[test]
+fn the_files_embedder_backend_survives_layering_without_the_flag() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("c.toml");
+    std::fs::write(
+        &file,
+        "[embedder]\nweights = { path = \"/m\" }\nbackend = \"onnx\"\nthreads = 3\n",
+    )
+    .unwrap();
+    let f = file.to_str().unwrap();
+    let cfg = Config::load(&ServeArgs::try_parse_from(["serve", "--config", f]).unwrap()).unwrap();
+    let e = cfg.embedder.unwrap();
+    assert_eq!((e.backend, e.threads), (EmbedderBackend::Onnx, Some(3)));
+    let args =
+        ServeArgs::try_parse_from(["serve", "--config", f, "--embedder-backend", "candle"]).unwrap();
+    let e = Config::load(&args).unwrap().embedder.unwrap();
+    assert_eq!(e.backend, EmbedderBackend::Candle);
+}
+
 #[test]
 fn durations_that_would_break_later_are_refused_with_the_field_named() {
     for (toml, field) in [
