@@ -10,11 +10,12 @@
 //! * [`service`]: the engine, the writer thread, the clip pipeline; its own error type, no HTTP;
 //! * [`http`]: the route table, middleware, and the one place errors become statuses;
 //! * [`wire`]: the JSON shapes of the answers;
-//! * [`serve`], [`eval`], [`bench`], [`label`]: the subcommands ([`cli`]).
+//! * [`serve`], [`eval`], [`bench`], [`label`], [`describe`]: the subcommands ([`cli`]).
 
 pub mod bench;
 pub mod cli;
 pub mod config;
+pub mod describe;
 pub mod eval;
 pub mod http;
 pub mod label;
