@@ -1,5 +1,6 @@
 //! `/v1/infer`'s work once the clips are on disk: decode and sample → context embedding →
-//! reporters in parallel → labeler → the /v1/fuse store path. Blocking steps run off the async
+//! reporters in parallel (each sees all of the request's clips at once: an in-process model runs
+//! them as one batch) → labeler → the /v1/fuse store path. Blocking steps run off the async
 //! threads: decoding on the blocking pool, the models on their own workers.
 
 use super::{Service, ServiceError};
@@ -23,6 +24,14 @@ pub struct Upload {
 pub struct Inferred {
     pub clips: Vec<InferClipOut>,
     pub batch: bool,
+}
+
+/// A clip decoded and embedded, ready for the reporters.
+struct Decoded {
+    input: ClipInput,
+    context: Vec<f32>,
+    clip: ClipOut,
+    timings: Vec<(String, f64)>,
 }
 
 /// A clip that went through every stage up to fusion.
@@ -108,9 +117,19 @@ impl Service {
     pub async fn infer(&self, uploads: Vec<Upload>) -> Result<Inferred, ServiceError> {
         self.check_infer_ready()?;
         let batch = uploads.len() > 1;
-        let mut processed = Vec::with_capacity(uploads.len());
+        let mut decoded = Vec::with_capacity(uploads.len());
         for up in &uploads {
-            processed.push(self.process(up).await?);
+            decoded.push(self.decode_and_embed(up).await?);
+        }
+        // Every reporter sees all the request's clips at once: an in-process model runs them as
+        // one batch (one vision pass, one prefill), a remote one concurrently.
+        let start = Instant::now();
+        let inputs: Vec<ClipInput> = decoded.iter().map(|d| d.input.clone()).collect();
+        let runs = vlmfuse_models::run_all_batch(&self.pipeline.reporters, &inputs).await;
+        let reporters_ms = stage("reporters", start);
+        let mut processed = Vec::with_capacity(uploads.len());
+        for ((up, d), runs) in uploads.iter().zip(decoded).zip(runs) {
+            processed.push(self.label_and_record(up, d, runs, reporters_ms).await?);
         }
         let records = processed
             .iter_mut()
@@ -139,8 +158,8 @@ impl Service {
         Ok(Inferred { clips, batch })
     }
 
-    /// Decode, embed, report and label one clip.
-    async fn process(&self, up: &Upload) -> Result<Processed, ServiceError> {
+    /// Decode and embed one clip.
+    async fn decode_and_embed(&self, up: &Upload) -> Result<Decoded, ServiceError> {
         let p = &self.pipeline;
         let media = &self.cfg.media;
         let mut timings = vec![("upload".to_string(), up.upload_ms)];
@@ -181,7 +200,6 @@ impl Service {
             .map_err(ServiceError::Embedder)?;
         timings.push(("embed".into(), stage("embed", start)));
 
-        let start = Instant::now();
         let input = ClipInput {
             path,
             frames,
@@ -193,9 +211,33 @@ impl Service {
                 height: Some(info.height),
             },
         };
-        let runs = vlmfuse_models::run_all(&p.reporters, &input).await;
-        timings.push(("reporters".into(), stage("reporters", start)));
+        Ok(Decoded {
+            input,
+            context,
+            clip,
+            timings,
+        })
+    }
 
+    /// Label one clip's answers (`runs`, from the request's reporter batch) and build its round.
+    async fn label_and_record(
+        &self,
+        up: &Upload,
+        d: Decoded,
+        runs: Vec<(
+            String,
+            Result<vlmfuse_models::ReporterOutput, vlmfuse_models::ReporterFailure>,
+        )>,
+        reporters_ms: f64,
+    ) -> Result<Processed, ServiceError> {
+        let p = &self.pipeline;
+        let Decoded {
+            context,
+            clip,
+            mut timings,
+            ..
+        } = d;
+        timings.push(("reporters".into(), reporters_ms));
         let start = Instant::now();
         let labeler = p.labeler.clone().expect("checked before");
         let mut failed = p.unloaded_reporters.clone();
