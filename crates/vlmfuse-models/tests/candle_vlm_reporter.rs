@@ -605,3 +605,43 @@ fn lora_adapter_changes_the_reporters_logits() {
     assert!(d > 1e-3, "adapter did not change the logits ({d})");
     assert!(matches!(tuned.arch(), Arch::Qwen3Vl { .. }));
 }
+
+/// Sampling is kept: with a temperature, a seed reproduces its answer, another seed changes it
+/// (on this random model), and a clip's sampled answer does not depend on its batch.
+#[test]
+fn sampling_is_seeded_per_clip() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = qwen_dir(tmp.path());
+    let qc = parity("qwen3_vl/reference.json");
+    let clips = [qwen_clip(&qc["cases"][0]), qwen_clip(&qc["cases"][2])];
+    let never = AtomicBool::new(false);
+    let sampled = |seed: u64| {
+        CandleVlmReporter::load(CandleVlmConfig {
+            temperature: Some(1.5),
+            top_p: Some(0.95),
+            seed,
+            ..config("s", &dir, PROMPT, 12)
+        })
+        .unwrap()
+    };
+    let a = sampled(1);
+    let a1 = a.generate_blocking(&clips[1], &never).unwrap().tokens;
+    assert_eq!(a1, a.generate_blocking(&clips[1], &never).unwrap().tokens);
+    let seeds_differ = (2..8).any(|s| {
+        sampled(s)
+            .generate_blocking(&clips[1], &never)
+            .unwrap()
+            .tokens
+            != a1
+    });
+    assert!(seeds_differ, "no seed changed the sampled answer");
+    let greedy = CandleVlmReporter::load(config("g", &dir, PROMPT, 12)).unwrap();
+    assert_ne!(
+        greedy.generate_blocking(&clips[1], &never).unwrap().tokens,
+        a1,
+        "temperature 1.5 gave the greedy answer"
+    );
+    let refs: Vec<&[Frame]> = clips.iter().map(|c| c.as_slice()).collect();
+    let batch = a.generate_batch_blocking(&refs, &never).unwrap();
+    assert_eq!(batch[1].tokens, a1);
+}
