@@ -62,10 +62,31 @@ fn config(path: &Path) -> anyhow::Result<Config> {
     Config::load(&ServeArgs::try_parse_from(argv)?)
 }
 
+/// A spinner on standard error while a long step runs (loading a 7B checkpoint, generating on
+/// the CPU), when it is a terminal; nothing otherwise.
+fn spinner(quiet: bool, msg: String) -> Option<indicatif::ProgressBar> {
+    use std::io::IsTerminal;
+    if quiet || !std::io::stderr().is_terminal() {
+        return None;
+    }
+    let b = indicatif::ProgressBar::new_spinner();
+    b.set_style(
+        indicatif::ProgressStyle::with_template("{spinner} {msg} {elapsed}").expect("template"),
+    );
+    b.set_message(msg);
+    b.enable_steady_tick(std::time::Duration::from_millis(120));
+    Some(b)
+}
+
 pub fn run(args: DescribeArgs) -> anyhow::Result<()> {
     let say = |m: String| {
         if !args.quiet {
             eprintln!("{m}");
+        }
+    };
+    let done = |b: Option<indicatif::ProgressBar>| {
+        if let Some(b) = b {
+            b.finish_and_clear();
         }
     };
     let cfg = config(&args.config)?;
@@ -156,8 +177,10 @@ pub fn run(args: DescribeArgs) -> anyhow::Result<()> {
                 c.weights.describe(),
                 c.device
             ));
-            let r = CandleVlmReporter::load(c)
-                .with_context(|| format!("loading reporter `{}`", args.reporter))?;
+            let bar = spinner(args.quiet, "loading".into());
+            let r = CandleVlmReporter::load(c);
+            done(bar);
+            let r = r.with_context(|| format!("loading reporter `{}`", args.reporter))?;
             say(format!(
                 "loaded {} ({:?} on {}) in {:.1} s; generating up to {} tokens ...",
                 r.arch().model_type(),
@@ -167,9 +190,10 @@ pub fn run(args: DescribeArgs) -> anyhow::Result<()> {
                 r.config().max_new_tokens
             ));
             let t = Instant::now();
-            let trace = r
-                .trace(&frames, &AtomicBool::new(false))
-                .with_context(|| format!("running reporter `{}`", args.reporter))?;
+            let bar = spinner(args.quiet, "generating".into());
+            let trace = r.trace(&frames, &AtomicBool::new(false));
+            done(bar);
+            let trace = trace.with_context(|| format!("running reporter `{}`", args.reporter))?;
             Answer {
                 text: trace.generation.text.clone(),
                 model: format!("{} ({})", r.config().name, trace.model_type),
@@ -197,9 +221,10 @@ pub fn run(args: DescribeArgs) -> anyhow::Result<()> {
             };
             say(format!("asking `{}` ...", args.reporter));
             let t = Instant::now();
-            let out = rt
-                .block_on(r.run(&clip))
-                .with_context(|| format!("running reporter `{}`", args.reporter))?;
+            let bar = spinner(args.quiet, "waiting for the server".into());
+            let out = rt.block_on(r.run(&clip));
+            done(bar);
+            let out = out.with_context(|| format!("running reporter `{}`", args.reporter))?;
             Answer {
                 text: out.text,
                 model: out.model,
