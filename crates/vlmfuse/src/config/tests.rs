@@ -122,9 +122,13 @@ fn the_commented_pipeline_examples_parse() {
             }
         }
     }
-    let text = format!("reporters = [\"vlaad\", \"videollama2\"]\n{text}");
+    let text = format!("reporters = [\"vlaad\", \"videollama2\", \"videollava\"]\n{text}");
     let cfg = Config::from_toml(&text).unwrap_or_else(|e| panic!("{e}\n{text}"));
-    assert_eq!(cfg.reporter.len(), 2);
+    assert_eq!(cfg.reporter.len(), 3);
+    match &cfg.reporter[2].backend {
+        ReporterBackend::Candle(c) => assert_eq!(c.name, "videollava"),
+        other => panic!("{other:?}"),
+    }
     assert_eq!(cfg.reporter[0].name(), "videollama2");
     assert_eq!(cfg.reporter[0].round_timeout_s, 180.0);
     match &cfg.reporter[1].backend {
