@@ -358,6 +358,19 @@ fn unknown_model_type_and_devices_are_clear_errors() {
         assert!(msg.contains(want), "{msg} lacks {want}");
     }
 
+    let (ldir, _) = llava_dirs(tmp.path());
+    let e = CandleVlmReporter::load(CandleVlmConfig {
+        frames: Some(4),
+        ..config("x", &ldir, PROMPT, 4)
+    })
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(
+        e.contains("Qwen3-VL only") && e.contains("num_frames = 8"),
+        "{e}"
+    );
+
     let dir = qwen_dir(&tmp.path().join("ok"));
     let bad_dtype = CandleVlmConfig {
         dtype: Some("f8".into()),

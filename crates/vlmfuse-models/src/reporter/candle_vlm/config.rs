@@ -18,9 +18,8 @@ fn default_max_new_tokens() -> usize {
 fn default_prompt() -> String {
     DEFAULT_PROMPT.into()
 }
-fn default_frames() -> usize {
-    8
-}
+/// Qwen3-VL's frames per clip when `frames` is unset.
+pub const DEFAULT_QWEN_FRAMES: usize = 8;
 
 /// One in-process VLM reporter (Qwen3-VL or VideoLLaVA), as written in the service config.
 ///
@@ -49,10 +48,10 @@ pub struct CandleVlmConfig {
     pub seed: u64,
     /// The user's question; the architecture's chat format is put around it.
     pub prompt: String,
-    /// Qwen3-VL: at most this many of the clip's sampled frames go to the model, spread evenly,
-    /// each with its presentation time (the prompt states the times). VideoLLaVA ignores it: its
-    /// processor's `num_frames` (8) is what the model was trained with.
-    pub frames: usize,
+    /// Qwen3-VL: at most this many of the clip's sampled frames go to the model (default 8),
+    /// spread evenly, each with its presentation time (the prompt states the times). Refused for
+    /// VideoLLaVA, whose processor's `num_frames` (8) is what the model was trained with.
+    pub frames: Option<usize>,
 }
 
 impl CandleVlmConfig {
@@ -68,7 +67,7 @@ impl CandleVlmConfig {
             top_p: None,
             seed: 0,
             prompt: default_prompt(),
-            frames: default_frames(),
+            frames: None,
         }
     }
 }
@@ -97,8 +96,8 @@ pub struct RawCandleVlmConfig {
     seed: u64,
     #[serde(default = "default_prompt")]
     prompt: String,
-    #[serde(default = "default_frames")]
-    frames: usize,
+    #[serde(default)]
+    frames: Option<usize>,
     #[serde(default)]
     causal_prefill: Option<serde::de::IgnoredAny>,
     #[serde(default)]
@@ -181,7 +180,7 @@ mod tests {
         assert_eq!(c, CandleVlmConfig::new("q", WeightSource::local("/m")));
         assert_eq!(c.prompt, DEFAULT_PROMPT);
         assert!(c.temperature.is_none());
-        assert_eq!(c.frames, 8);
+        assert_eq!(c.frames, None);
     }
 
     #[test]

@@ -8,6 +8,6 @@ mod config;
 mod engine;
 mod reporter;
 
-pub use config::{parse_dtype, CandleVlmConfig, RawCandleVlmConfig};
+pub use config::{parse_dtype, CandleVlmConfig, RawCandleVlmConfig, DEFAULT_QWEN_FRAMES};
 pub use engine::{spread_indices, Arch, ArchCache, InputView, Prepared, SUPPORTED_MODEL_TYPES};
 pub use reporter::{CandleVlmReporter, Generation, Trace};

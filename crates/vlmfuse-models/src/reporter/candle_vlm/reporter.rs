@@ -9,7 +9,7 @@ use std::time::Instant;
 use candle_core::Tensor;
 use candle_transformers::generation::LogitsProcessor;
 
-use super::config::{parse_dtype, CandleVlmConfig};
+use super::config::{parse_dtype, CandleVlmConfig, DEFAULT_QWEN_FRAMES};
 use super::engine::{Arch, Prepared};
 use crate::reporter::{ClipInput, LocalReporter, ReporterOutput};
 use crate::{parse_device, Frame, ModelError};
@@ -68,7 +68,7 @@ impl CandleVlmReporter {
     /// Blocking (reads every weight, merges the adapter): call at startup, off the async
     /// threads. Fails for an unsupported `model_type`, a device this build lacks, a bad dtype.
     pub fn load(cfg: CandleVlmConfig) -> Result<Self, ModelError> {
-        if cfg.frames == 0 {
+        if cfg.frames == Some(0) {
             return Err(ModelError::BadConfig(format!(
                 "reporter `{}`: frames must be at least 1",
                 cfg.name
@@ -84,6 +84,13 @@ impl CandleVlmReporter {
         let device = parse_device(&cfg.device)?;
         let dtype = parse_dtype(cfg.dtype.as_deref(), &device)?;
         let arch = Arch::load(&cfg.weights, cfg.adapter.as_ref(), dtype, &device)?;
+        if let (Some(n), Arch::VideoLlava { processor, .. }) = (cfg.frames, &arch) {
+            return Err(ModelError::BadConfig(format!(
+                "reporter `{}`: frames = {n} applies to Qwen3-VL only; this checkpoint is \
+                 video_llava, whose processor takes num_frames = {} of each clip; remove frames",
+                cfg.name, processor.num_frames
+            )));
+        }
         if arch.eos_ids().is_empty() {
             tracing::warn!(
                 reporter = %cfg.name,
@@ -114,7 +121,11 @@ impl CandleVlmReporter {
 
     /// The inputs this reporter builds for `clips` (one row each).
     pub fn prepare(&self, clips: &[&[Frame]]) -> Result<Prepared, ModelError> {
-        self.arch.prepare(clips, &self.cfg.prompt, self.cfg.frames)
+        self.arch.prepare(
+            clips,
+            &self.cfg.prompt,
+            self.cfg.frames.unwrap_or(DEFAULT_QWEN_FRAMES),
+        )
     }
 
     /// One clip, blocking, with this reporter's settings.
