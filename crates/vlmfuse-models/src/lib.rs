@@ -15,7 +15,7 @@ pub use device::parse_device;
 pub use embed::{ClipEmbedder, ContextEmbedder, Embedder, OnnxClipConfig, OnnxClipEmbedder};
 pub use error::ModelError;
 pub use reporter::{
-    run_all, CandleVlmConfig, CandleVlmReporter, ClipInput, ClipMeta, LocalReporter,
+    run_all, run_all_batch, CandleVlmConfig, CandleVlmReporter, ClipInput, ClipMeta, LocalReporter,
     OpenAiReporter, OpenAiReporterConfig, Reporter, ReporterFailure, ReporterOutput, RoundReporter,
     DEFAULT_PROMPT,
 };

@@ -1,4 +1,4 @@
-//! `run_all`: concurrency, per-reporter timeouts, and failure isolation.
+//! `run_all` and `run_all_batch`: concurrency, per-reporter timeouts, and failure isolation.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -6,8 +6,8 @@ use std::time::{Duration, Instant};
 use futures::future::BoxFuture;
 use vlmfuse_core::chat::ChatError;
 use vlmfuse_models::{
-    run_all, ClipInput, ClipMeta, ModelError, Reporter, ReporterFailure, ReporterOutput,
-    RoundReporter,
+    run_all, run_all_batch, ClipInput, ClipMeta, ModelError, Reporter, ReporterFailure,
+    ReporterOutput, RoundReporter,
 };
 
 /// Every reporter under the same round timeout.
@@ -118,4 +118,54 @@ async fn no_reporters_is_an_empty_round() {
         meta: ClipMeta::default(),
     };
     assert!(run_all(&[], &clip).await.is_empty());
+}
+
+fn clip_with(n: usize) -> ClipInput {
+    ClipInput {
+        path: "/x.mp4".into(),
+        frames: (0..n)
+            .map(|_| vlmfuse_models::Frame {
+                width: 1,
+                height: 1,
+                rgb: vec![0; 3],
+                pts_s: 0.0,
+            })
+            .collect::<Vec<_>>()
+            .into(),
+        meta: ClipMeta::default(),
+    }
+}
+
+/// A request's clips: each reporter's outcomes come back per clip, in clip and reporter order;
+/// the batch gets the round timeout once per clip (three 150 ms clips run concurrently by the
+/// default `run_batch` fit in 3 x 100 ms), and a failing or slow reporter fails every clip
+/// of its batch alone.
+#[tokio::test]
+async fn run_all_batch_answers_per_clip() {
+    let reporters: Vec<Arc<dyn Reporter>> = vec![
+        Arc::new(Fake("a", Behaviour::Answer(Duration::from_millis(150)))),
+        Arc::new(Fake("broken", Behaviour::Fail)),
+        Arc::new(Fake("slow", Behaviour::Answer(Duration::from_secs(30)))),
+    ];
+    let clips = [clip_with(1), clip_with(2), clip_with(3)];
+    let t0 = Instant::now();
+    let res = run_all_batch(&timed(reporters, Duration::from_millis(100)), &clips).await;
+    assert!(t0.elapsed() < Duration::from_secs(2), "{:?}", t0.elapsed());
+    assert_eq!(res.len(), 3);
+    for (i, per) in res.iter().enumerate() {
+        let names: Vec<&str> = per.iter().map(|(n, _)| n.as_str()).collect();
+        assert_eq!(names, ["a", "broken", "slow"]);
+        assert_eq!(
+            per[0].1.as_ref().unwrap().text,
+            format!("a saw {} frames", i + 1)
+        );
+        assert_eq!(per[1].1.as_ref().unwrap_err().kind(), "remote");
+        assert!(
+            matches!(per[2].1, Err(ReporterFailure::TimedOut(d)) if d == Duration::from_millis(300))
+        );
+    }
+    assert!(run_all_batch(&[], &clips)
+        .await
+        .iter()
+        .all(|p| p.is_empty()));
 }

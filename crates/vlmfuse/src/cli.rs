@@ -1,7 +1,8 @@
 //! The `vlmfuse` command line: one binary for the service (`serve`), the paper's evaluation
-//! protocol (`eval`), the benchmarks (`bench`) and the labeler (`label`).
+//! protocol (`eval`), the benchmarks (`bench`), the labeler (`label`) and one reporter on one
+//! clip (`describe`).
 
-use crate::{bench, config, eval, label, serve};
+use crate::{bench, config, describe, eval, label, serve};
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
@@ -26,6 +27,9 @@ pub enum Cmd {
     Bench(bench::BenchArgs),
     /// Label VLM answers with the configured labeler and show the evidence for each label.
     Label(label::LabelArgs),
+    /// Run one configured reporter on one clip: its answer and labels, and with `--dump` the
+    /// in-process model's inputs and first-token logits (to check a checkpoint).
+    Describe(describe::DescribeArgs),
 }
 
 /// Parses the command line, runs the command, and prints an error with its causes.
@@ -36,6 +40,7 @@ pub fn main() -> ExitCode {
         Cmd::Eval(args) => eval::run(args),
         Cmd::Bench(args) => bench::run(args),
         Cmd::Label(args) => label::run(args),
+        Cmd::Describe(args) => describe::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -201,6 +201,11 @@ fn write_readable(
         out.labels.join(", ")
     };
     writeln!(w, "{head}{labels}")?;
+    write_evidence(w, out)
+}
+
+/// One line per evidence item: on or discounted, label, how, source, score, clause.
+pub(crate) fn write_evidence(w: &mut impl Write, out: &LabelOut) -> std::io::Result<()> {
     for e in &out.evidence {
         let how = match (e.accepted, e.negated, e.hedged) {
             (true, _, _) => "on",

@@ -11,12 +11,13 @@
 //! * [`conn`]: the socket edge: connection cap, header-read and idle timeouts;
 //! * [`http`]: the route table, middleware, and the one place errors become statuses;
 //! * [`wire`]: the JSON shapes of the answers;
-//! * [`serve`], [`eval`], [`bench`], [`label`]: the subcommands ([`cli`]).
+//! * [`serve`], [`eval`], [`bench`], [`label`], [`describe`]: the subcommands ([`cli`]).
 
 pub mod bench;
 pub mod cli;
 pub mod config;
 pub mod conn;
+pub mod describe;
 pub mod eval;
 pub mod http;
 pub mod label;

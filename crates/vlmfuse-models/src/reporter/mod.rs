@@ -4,7 +4,7 @@
 pub mod candle_vlm;
 mod openai;
 
-pub use candle_vlm::{CandleVlmConfig, CandleVlmReporter, Generation, QwenVlEngine};
+pub use candle_vlm::{CandleVlmConfig, CandleVlmReporter, Generation, Trace};
 pub use openai::{FrameFormat, OpenAiMode, OpenAiReporter, OpenAiReporterConfig};
 
 use std::panic::AssertUnwindSafe;
@@ -76,6 +76,16 @@ pub struct ReporterOutput {
 pub trait Reporter: Send + Sync {
     fn name(&self) -> &str;
     fn run<'a>(&'a self, clip: &'a ClipInput) -> BoxFuture<'a, Result<ReporterOutput, ModelError>>;
+
+    /// Several clips of one request, one outcome per clip in order. The default runs them
+    /// concurrently (a remote server batches on its side); an in-process model runs them as
+    /// one batch.
+    fn run_batch<'a>(
+        &'a self,
+        clips: &'a [ClipInput],
+    ) -> BoxFuture<'a, Vec<Result<ReporterOutput, ModelError>>> {
+        Box::pin(futures::future::join_all(clips.iter().map(|c| self.run(c))))
+    }
 }
 
 /// An in-process VLM: generation blocks the calling thread for seconds. `cancel` is set when the
@@ -88,6 +98,17 @@ pub trait LocalReporter: Send + Sync + 'static {
     fn name(&self) -> &str;
     fn generate(&self, clip: &ClipInput, cancel: &AtomicBool)
         -> Result<ReporterOutput, ModelError>;
+
+    /// Several clips at once, one outcome per clip in order. Default: one after another. Models
+    /// that batch (padding plus an attention mask) override it to run one forward pass per step
+    /// for all clips.
+    fn generate_batch(
+        &self,
+        clips: &[ClipInput],
+        cancel: &AtomicBool,
+    ) -> Vec<Result<ReporterOutput, ModelError>> {
+        clips.iter().map(|c| self.generate(c, cancel)).collect()
+    }
 }
 
 impl<B: LocalReporter + ?Sized> Reporter for BackendPool<B> {
@@ -110,6 +131,43 @@ impl<B: LocalReporter + ?Sized> Reporter for BackendPool<B> {
                     std::panic::resume_unwind(Box::new(message))
                 }
                 Err(e) => Err(e.into()),
+            }
+        })
+    }
+
+    fn run_batch<'a>(
+        &'a self,
+        clips: &'a [ClipInput],
+    ) -> BoxFuture<'a, Vec<Result<ReporterOutput, ModelError>>> {
+        Box::pin(async move {
+            let t0 = Instant::now();
+            let owned: Vec<ClipInput> = clips.to_vec();
+            let n = owned.len();
+            match self
+                .call(move |b, cancel| b.generate_batch(&owned, cancel))
+                .await
+            {
+                Ok(outs) if outs.len() == n => outs
+                    .into_iter()
+                    .map(|o| {
+                        o.map(|o| ReporterOutput {
+                            latency_ms: t0.elapsed().as_secs_f64() * 1e3,
+                            ..o
+                        })
+                    })
+                    .collect(),
+                Ok(outs) => (0..n)
+                    .map(|_| {
+                        Err(ModelError::InvalidInput(format!(
+                            "the batch returned {} outcomes for {n} clips",
+                            outs.len()
+                        )))
+                    })
+                    .collect(),
+                Err(BackendError::Panicked { message, .. }) => {
+                    std::panic::resume_unwind(Box::new(message))
+                }
+                Err(e) => (0..n).map(|_| Err(e.clone().into())).collect(),
             }
         })
     }
@@ -174,4 +232,60 @@ pub async fn run_all(
         (name, res)
     });
     futures::future::join_all(futs).await
+}
+
+/// [`run_all`] for the clips of one request: each reporter gets all of them in one
+/// [`Reporter::run_batch`] call (one batch for an in-process model), under its timeout times
+/// the number of clips (each clip is a round's work). Returns, per clip in order, what
+/// [`run_all`] returns for it. One clip runs exactly as [`run_all`].
+pub async fn run_all_batch(
+    reporters: &[RoundReporter],
+    clips: &[ClipInput],
+) -> Vec<Vec<(String, Result<ReporterOutput, ReporterFailure>)>> {
+    let n = clips.len();
+    if n == 1 {
+        return vec![run_all(reporters, &clips[0]).await];
+    }
+    let futs = reporters.iter().map(|rr| async move {
+        let r = &rr.reporter;
+        let timeout = rr.timeout.saturating_mul(n.max(1) as u32);
+        let name = r.name().to_string();
+        let fut = AssertUnwindSafe(r.run_batch(clips)).catch_unwind();
+        let outs: Vec<Result<ReporterOutput, ReporterFailure>> =
+            match tokio::time::timeout(timeout, fut).await {
+                Err(_) => (0..n)
+                    .map(|_| Err(ReporterFailure::TimedOut(timeout)))
+                    .collect(),
+                Ok(Err(panic)) => {
+                    let m = panic_message(panic.as_ref());
+                    (0..n)
+                        .map(|_| Err(ReporterFailure::Panicked(m.clone())))
+                        .collect()
+                }
+                Ok(Ok(v)) => v
+                    .into_iter()
+                    .map(|o| o.map_err(ReporterFailure::Failed))
+                    .collect(),
+            };
+        for e in outs.iter().filter_map(|o| o.as_ref().err()) {
+            tracing::warn!(reporter = %name, kind = e.kind(), error = %e, "reporter failed");
+        }
+        (name, outs)
+    });
+    let per_reporter = futures::future::join_all(futs).await;
+    let mut per_clip: Vec<Vec<_>> = (0..n)
+        .map(|_| Vec::with_capacity(reporters.len()))
+        .collect();
+    for (name, outs) in per_reporter {
+        let mut outs = outs.into_iter();
+        for slot in per_clip.iter_mut() {
+            let o = outs.next().unwrap_or_else(|| {
+                Err(ReporterFailure::Failed(ModelError::InvalidInput(
+                    "the reporter returned fewer outcomes than clips".into(),
+                )))
+            });
+            slot.push((name.clone(), o));
+        }
+    }
+    per_clip
 }

@@ -122,9 +122,13 @@ fn the_commented_pipeline_examples_parse() {
             }
         }
     }
-    let text = format!("reporters = [\"vlaad\", \"videollama2\"]\n{text}");
+    let text = format!("reporters = [\"vlaad\", \"videollama2\", \"videollava\"]\n{text}");
     let cfg = Config::from_toml(&text).unwrap_or_else(|e| panic!("{e}\n{text}"));
-    assert_eq!(cfg.reporter.len(), 2);
+    assert_eq!(cfg.reporter.len(), 3);
+    match &cfg.reporter[2].backend {
+        ReporterBackend::Candle(c) => assert_eq!(c.name, "videollava"),
+        other => panic!("{other:?}"),
+    }
     assert_eq!(cfg.reporter[0].name(), "videollama2");
     assert_eq!(cfg.reporter[0].round_timeout_s, 180.0);
     match &cfg.reporter[1].backend {
@@ -207,4 +211,34 @@ fn durations_that_would_break_later_are_refused_with_the_field_named() {
             .unwrap_err();
         assert!(format!("{err:#}").contains(field), "{toml}: {err:#}");
     }
+}
+
+/// `kind = "candle"` lost the old candle-transformers path's knobs: a config that still sets one
+/// fails and says what decides now; a misspelt field is refused too, not ignored.
+#[test]
+fn the_candle_reporter_refuses_removed_and_unknown_fields() {
+    let base = "reporters = [\"q\"]\n[[reporter]]\nkind = \"candle\"\nname = \"q\"\nweights = { path = \"/m\" }\n";
+    let cfg = Config::from_toml(&format!(
+        "{base}round_timeout_s = 5.0\nmax_new_tokens = 3\n"
+    ))
+    .unwrap();
+    assert_eq!(cfg.reporter[0].name(), "q");
+    for removed in [
+        "causal_prefill = false",
+        "max_pixels = 1024",
+        "min_pixels = 16",
+    ] {
+        let e = format!(
+            "{:#}",
+            Config::from_toml(&format!("{base}{removed}\n")).unwrap_err()
+        );
+        let field = removed.split(' ').next().unwrap();
+        assert!(e.contains(field), "{e}");
+        assert!(e.contains("processor config"), "{e}");
+    }
+    let e = format!(
+        "{:#}",
+        Config::from_toml(&format!("{base}max_new_token = 3\n")).unwrap_err()
+    );
+    assert!(e.contains("max_new_token"), "{e}");
 }

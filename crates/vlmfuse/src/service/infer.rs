@@ -1,5 +1,6 @@
 //! `/v1/infer`'s work once the clips are on disk: decode and sample → context embedding →
-//! reporters in parallel → labeler → the /v1/fuse store path. Blocking steps run off the async
+//! reporters in parallel (each sees all of the request's clips at once: an in-process model runs
+//! them as one batch) → labeler → the /v1/fuse store path. Blocking steps run off the async
 //! threads: decoding on the blocking pool, the models on their own workers.
 
 use super::fuse::{fingerprint, idempotency_key, Answer, IdemRequest, Render};
@@ -20,6 +21,14 @@ pub struct Upload {
     pub upload_ms: f64,
     /// SHA-256 of the clip's bytes: what an idempotency key's request is recognised by.
     pub sha256: [u8; 32],
+}
+
+/// A clip decoded and embedded, ready for the reporters.
+struct Decoded {
+    input: ClipInput,
+    context: Vec<f32>,
+    clip: ClipOut,
+    timings: Vec<(String, f64)>,
 }
 
 /// A clip that went through every stage up to fusion.
@@ -131,9 +140,19 @@ impl Service {
             }
         }
         let batch = uploads.len() > 1;
-        let mut processed = Vec::with_capacity(uploads.len());
+        let mut decoded = Vec::with_capacity(uploads.len());
         for up in &uploads {
-            processed.push(self.process(up).await?);
+            decoded.push(self.decode_and_embed(up).await?);
+        }
+        // Every reporter sees all the request's clips at once: an in-process model runs them as
+        // one batch (one vision pass, one prefill), a remote one concurrently.
+        let start = Instant::now();
+        let inputs: Vec<ClipInput> = decoded.iter().map(|d| d.input.clone()).collect();
+        let runs = vlmfuse_models::run_all_batch(&self.pipeline.reporters, &inputs).await;
+        let reporters_ms = stage("reporters", start);
+        let mut processed = Vec::with_capacity(uploads.len());
+        for ((up, d), runs) in uploads.iter().zip(decoded).zip(runs) {
+            processed.push(self.label_and_record(up, d, runs, reporters_ms).await?);
         }
         let records = processed
             .iter_mut()
@@ -172,8 +191,8 @@ impl Service {
         Ok(answer)
     }
 
-    /// Decode, embed, report and label one clip.
-    async fn process(&self, up: &Upload) -> Result<Processed, ServiceError> {
+    /// Decode and embed one clip.
+    async fn decode_and_embed(&self, up: &Upload) -> Result<Decoded, ServiceError> {
         let p = &self.pipeline;
         let media = &self.cfg.media;
         let mut timings = vec![("upload".to_string(), up.upload_ms)];
@@ -214,7 +233,6 @@ impl Service {
             .map_err(ServiceError::Embedder)?;
         timings.push(("embed".into(), stage("embed", start)));
 
-        let start = Instant::now();
         let input = ClipInput {
             path,
             frames,
@@ -226,9 +244,33 @@ impl Service {
                 height: Some(info.height),
             },
         };
-        let runs = vlmfuse_models::run_all(&p.reporters, &input).await;
-        timings.push(("reporters".into(), stage("reporters", start)));
+        Ok(Decoded {
+            input,
+            context,
+            clip,
+            timings,
+        })
+    }
 
+    /// Label one clip's answers (`runs`, from the request's reporter batch) and build its round.
+    async fn label_and_record(
+        &self,
+        up: &Upload,
+        d: Decoded,
+        runs: Vec<(
+            String,
+            Result<vlmfuse_models::ReporterOutput, vlmfuse_models::ReporterFailure>,
+        )>,
+        reporters_ms: f64,
+    ) -> Result<Processed, ServiceError> {
+        let p = &self.pipeline;
+        let Decoded {
+            context,
+            clip,
+            mut timings,
+            ..
+        } = d;
+        timings.push(("reporters".into(), reporters_ms));
         let start = Instant::now();
         let labeler = p.labeler.clone().expect("checked before");
         let mut failed = p.unloaded_reporters.clone();

@@ -1,6 +1,8 @@
-//! The tests that need the real `vlmfuse` binary: `kill -9` and SIGTERM, and `vlmfuse eval`'s
-//! and `vlmfuse label`'s command lines. Everything else runs in-process (the `service` tests).
+//! The tests that need the real `vlmfuse` binary: `kill -9` and SIGTERM, and the command lines
+//! of `vlmfuse eval`, `vlmfuse label` and `vlmfuse describe`. Everything else runs in-process
+//! (the `service` tests).
 
+mod describe_cli;
 mod eval_cli;
 mod label_cli;
 mod readiness;

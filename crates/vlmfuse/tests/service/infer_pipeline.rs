@@ -6,7 +6,10 @@
 use crate::support::TestApp;
 use serde_json::json;
 use vlmfuse_testkit::clips::h264_clip;
-use vlmfuse_testkit::fixtures::{clip_embedder_toml, qwen_reporter_toml};
+use vlmfuse_testkit::fixtures::{
+    clip_embedder_toml, qwen_reporter_toml, video_llava_reporter_toml,
+};
+use vlmfuse_testkit::multipart::multipart;
 use vlmfuse_testkit::server::{FakeOpenAi, DRIVING_TEXT, LABELER_LABELS, LABELER_MODEL};
 
 const REPORTERS: &str =
@@ -251,4 +254,54 @@ async fn the_onnx_embedder_serves_infer() {
     let srv2 = TestApp::from_toml(tmp2.path(), &bad).await;
     let ready = srv2.get("/readyz").await.json();
     assert!(ready.to_string().contains("runs on the CPU"), "{ready}");
+}
+
+/// Two clips in one /v1/infer request through both in-process architectures (one batch per
+/// reporter): each clip gets the answers it gets when posted alone.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_two_clip_request_batches_the_in_process_reporters() {
+    let tmp = tempfile::tempdir().unwrap();
+    let fake = FakeOpenAi::start();
+    let mut cfg = String::from("reporters = [\"qwen\", \"videollava\"]\n\n[media]\nframes = 4\n\n");
+    cfg += &clip_embedder_toml(tmp.path());
+    cfg += &qwen_reporter_toml(tmp.path(), "qwen");
+    cfg += &video_llava_reporter_toml(tmp.path(), "videollava");
+    cfg += &fake.labeler_toml();
+    let srv = TestApp::from_toml(tmp.path(), &cfg).await;
+    let ready = srv.get("/readyz").await.json();
+    assert_eq!(ready["status"], "ready", "{ready}");
+
+    let a = h264_clip(tmp.path(), "a.mp4", "testsrc2", 2.0);
+    let b = h264_clip(tmp.path(), "b.mp4", "mandelbrot", 1.0);
+    let mut alone = Vec::new();
+    for clip in [&a, &b] {
+        let r = srv.post_clip(clip).await;
+        assert_eq!(r.status, 200, "{}", r.json());
+        alone.push(r.json());
+    }
+    let two = srv
+        .post_multipart(multipart(&[
+            ("video", "a.mp4", &std::fs::read(&a).unwrap()),
+            ("video", "b.mp4", &std::fs::read(&b).unwrap()),
+        ]))
+        .await;
+    let v = two.json();
+    assert_eq!(two.status, 200, "{v}");
+    let clips = v["clips"].as_array().unwrap();
+    assert_eq!(clips.len(), 2);
+    for (i, c) in clips.iter().enumerate() {
+        assert_eq!(c["failed"], json!({}), "{c}");
+        for name in ["qwen", "videollava"] {
+            let text = c["reporters"][name]["text"].as_str().unwrap();
+            assert!(!text.trim().is_empty(), "{name}: {c}");
+            assert_eq!(
+                text, alone[i]["reporters"][name]["text"],
+                "clip {i}, {name}: batched answer differs from the single one"
+            );
+        }
+    }
+    assert_ne!(
+        clips[0]["reporters"]["qwen"]["text"], clips[1]["reporters"]["qwen"]["text"],
+        "two different clips gave the same answer: the test would not see a row mix-up"
+    );
 }

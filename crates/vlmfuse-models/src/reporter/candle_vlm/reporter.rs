@@ -1,81 +1,303 @@
-//! The in-process Qwen3-VL as a [`LocalReporter`]: a loaded engine plus this reporter's
+//! The in-process VLM as a [`LocalReporter`]: a model loaded once plus this reporter's
 //! generation settings. The service wraps it in a [`BackendPool`](vlmfuse_core::BackendPool),
-//! which runs one generation at a time and queues the rest, so the engine needs no lock.
+//! which runs one generation at a time and queues the rest, so the model needs no lock; every
+//! generation gets a fresh cache.
 
-use std::sync::atomic::AtomicBool;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
+use candle_core::Tensor;
 use candle_transformers::generation::LogitsProcessor;
 
-use super::checkpoint::QwenVlEngine;
-use super::config::CandleVlmConfig;
-use super::generate::Generation;
-use super::video;
+use super::config::{parse_dtype, CandleVlmConfig, DEFAULT_QWEN_FRAMES};
+use super::engine::{Arch, Prepared};
 use crate::reporter::{ClipInput, LocalReporter, ReporterOutput};
-use crate::{Frame, FrameRef, ModelError};
+use crate::{parse_device, Frame, ModelError};
 
-/// [`LocalReporter`] over a [`QwenVlEngine`]. One generation at a time per model comes from its
-/// pool (a second concurrent one would only contend for the same device and double its
-/// activation memory), not from a lock here.
+/// What one generation produced, with the numbers needed to report throughput.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Generation {
+    pub text: String,
+    /// Generated ids, the end-of-sequence id excluded.
+    pub tokens: Vec<u32>,
+    /// Prompt length of this row (placeholders included, padding excluded).
+    pub prompt_tokens: usize,
+    pub visual_tokens: usize,
+    /// Preprocessing, vision tower and prefill of the whole batch.
+    pub prefill_ms: f64,
+    pub decode_ms: f64,
+}
+
+impl Generation {
+    /// Decode throughput (excludes prefill, which is dominated by the vision tower).
+    pub fn tokens_per_s(&self) -> f64 {
+        if self.decode_ms <= 0.0 {
+            0.0
+        } else {
+            self.tokens.len() as f64 / (self.decode_ms / 1e3)
+        }
+    }
+}
+
+/// The model's inputs and first output for one clip: what `vlmfuse describe --dump` writes, so
+/// a checkpoint can be checked against its reference implementation from outside.
+#[derive(Debug, Clone)]
+pub struct Trace {
+    /// `qwen3_vl` or `video_llava`.
+    pub model_type: &'static str,
+    pub input_ids: Vec<u32>,
+    /// The vision tower's input (f32, on the CPU): Qwen3-VL `[patches, patch_dim]`, VideoLLaVA
+    /// `[frames, 3, height, width]`.
+    pub pixel_values: Option<Tensor>,
+    /// Qwen3-VL: `t`, `h`, `w` in patches; VideoLLaVA: `frames`, `height`, `width`.
+    pub grid: serde_json::Value,
+    /// Next-token logits after the prompt (f32).
+    pub first_token_logits: Vec<f32>,
+    pub generation: Generation,
+}
+
+/// [`LocalReporter`] over an in-process Qwen3-VL or VideoLLaVA. One generation at a time per
+/// model comes from its pool (a second concurrent one would only contend for the same device
+/// and double its activation memory), not from a lock here.
 pub struct CandleVlmReporter {
     cfg: CandleVlmConfig,
-    engine: QwenVlEngine,
+    arch: Arch,
 }
 
 impl CandleVlmReporter {
-    /// Blocking (reads and converts every weight): call at startup, off the async threads.
+    /// Blocking (reads every weight, merges the adapter): call at startup, off the async
+    /// threads. Fails for an unsupported `model_type`, a device this build lacks, a bad dtype.
     pub fn load(cfg: CandleVlmConfig) -> Result<Self, ModelError> {
-        if cfg.frames == 0 {
+        if cfg.frames == Some(0) {
             return Err(ModelError::BadConfig(format!(
                 "reporter `{}`: frames must be at least 1",
                 cfg.name
             )));
         }
+        if cfg.max_new_tokens == 0 {
+            return Err(ModelError::BadConfig(format!(
+                "reporter `{}`: max_new_tokens must be at least 1",
+                cfg.name
+            )));
+        }
         let t0 = Instant::now();
-        let engine = QwenVlEngine::load(&cfg)?;
+        let device = parse_device(&cfg.device)?;
+        let dtype = parse_dtype(cfg.dtype.as_deref(), &device)?;
+        let arch = Arch::load(&cfg.weights, cfg.adapter.as_ref(), dtype, &device)?;
+        if let (Some(n), Arch::VideoLlava { processor, .. }) = (cfg.frames, &arch) {
+            return Err(ModelError::BadConfig(format!(
+                "reporter `{}`: frames = {n} applies to Qwen3-VL only; this checkpoint is \
+                 video_llava, whose processor takes num_frames = {} of each clip; remove frames",
+                cfg.name, processor.num_frames
+            )));
+        }
+        if arch.eos_ids().is_empty() {
+            tracing::warn!(
+                reporter = %cfg.name,
+                "the checkpoint names no eos_token_id: answers run to max_new_tokens"
+            );
+        }
         tracing::info!(
             reporter = %cfg.name,
+            model_type = arch.model_type(),
             weights = %cfg.weights.describe(),
             device = %cfg.device,
+            dtype = ?dtype,
+            lora_modules = arch.merged_lora_keys().len(),
             ms = t0.elapsed().as_secs_f64() * 1e3,
-            "loaded candle Qwen3-VL"
+            "loaded in-process VLM"
         );
-        Ok(Self { cfg, engine })
+        Ok(Self { cfg, arch })
     }
 
     pub fn config(&self) -> &CandleVlmConfig {
         &self.cfg
     }
 
-    /// The loaded engine, for inspection (tests, `/readyz`).
-    pub fn engine(&self) -> &QwenVlEngine {
-        &self.engine
+    /// The loaded architecture (model and processor), for inspection and tests.
+    pub fn arch(&self) -> &Arch {
+        &self.arch
     }
 
-    /// Blocking generation with this reporter's settings.
+    /// The inputs this reporter builds for `clips` (one row each).
+    pub fn prepare(&self, clips: &[&[Frame]]) -> Result<Prepared, ModelError> {
+        self.arch.prepare(
+            clips,
+            &self.cfg.prompt,
+            self.cfg.frames.unwrap_or(DEFAULT_QWEN_FRAMES),
+        )
+    }
+
+    /// One clip, blocking, with this reporter's settings.
     pub fn generate_blocking(
         &self,
         frames: &[Frame],
         cancel: &AtomicBool,
     ) -> Result<Generation, ModelError> {
-        let cfg = &self.cfg;
-        let picked: Vec<FrameRef> = video::spread_indices(frames.len(), cfg.frames)
-            .into_iter()
-            .map(|i| frames[i].as_ref())
-            .collect();
-        for f in &picked {
-            f.validate()?;
-        }
-        let mut sampler = LogitsProcessor::new(cfg.seed, cfg.temperature, cfg.top_p);
-        self.engine.generate(
-            &picked,
-            &cfg.prompt,
-            cfg.max_new_tokens,
-            &mut sampler,
-            cfg.causal_prefill,
-            cancel,
-        )
+        Ok(self
+            .generate_batch_blocking(&[frames], cancel)?
+            .pop()
+            .expect("one row"))
     }
+
+    /// Several clips as one batch (left padding and an attention mask): one vision pass, one
+    /// prefill, one decoding step per token for all rows. Each row gets what it gets alone.
+    pub fn generate_batch_blocking(
+        &self,
+        clips: &[&[Frame]],
+        cancel: &AtomicBool,
+    ) -> Result<Vec<Generation>, ModelError> {
+        let t0 = Instant::now();
+        let prepared = self.prepare(clips)?;
+        Ok(self.run(&prepared, cancel, t0, false)?.0)
+    }
+
+    /// One clip with everything `describe --dump` writes.
+    pub fn trace(&self, frames: &[Frame], cancel: &AtomicBool) -> Result<Trace, ModelError> {
+        let t0 = Instant::now();
+        let prepared = self.prepare(&[frames])?;
+        let view = prepared.view(&self.arch);
+        let (pixel_values, grid) = match prepared.pixels(&self.arch, 0)? {
+            Some((t, g)) => (Some(t), g),
+            None => (None, serde_json::Value::Null),
+        };
+        let (mut gens, first) = self.run(&prepared, cancel, t0, true)?;
+        Ok(Trace {
+            model_type: self.arch.model_type(),
+            input_ids: view.input_ids.into_iter().next().unwrap_or_default(),
+            pixel_values,
+            grid,
+            first_token_logits: first.into_iter().next().unwrap_or_default(),
+            generation: gens.pop().expect("one row"),
+        })
+    }
+
+    /// The decoding loop shared by every architecture: greedy (lowest id on ties, as
+    /// `torch.argmax`) unless a temperature is set, one sampler per row seeded alike so a clip's
+    /// answer does not depend on its batch; a row stops at an end-of-sequence id or
+    /// `max_new_tokens`, the batch when every row has; `cancel` is checked between steps.
+    fn run(
+        &self,
+        prepared: &Prepared,
+        cancel: &AtomicBool,
+        t0: Instant,
+        keep_first: bool,
+    ) -> Result<(Vec<Generation>, Vec<Vec<f32>>), ModelError> {
+        let cfg = &self.cfg;
+        let rows = prepared.rows();
+        let view = prepared.view(&self.arch);
+        let mut cache = self
+            .arch
+            .new_cache(prepared.max_len() + cfg.max_new_tokens + 1);
+        let cancelled = || ModelError::Timeout {
+            what: "generation (cancelled)".into(),
+            after: t0.elapsed(),
+        };
+        if cancel.load(Ordering::Relaxed) {
+            return Err(cancelled());
+        }
+        let mut logits = self.arch.prefill(prepared, &mut cache)?;
+        let first = if keep_first {
+            logits.to_vec2::<f32>()?
+        } else {
+            Vec::new()
+        };
+        let prefill_ms = t0.elapsed().as_secs_f64() * 1e3;
+        let t1 = Instant::now();
+        let greedy = cfg.temperature.is_none_or(|t| t < 1e-7);
+        let mut samplers: Vec<LogitsProcessor> = (0..rows)
+            .map(|_| LogitsProcessor::new(cfg.seed, cfg.temperature, cfg.top_p))
+            .collect();
+        let eos = self.arch.eos_ids();
+        let mut out: Vec<Vec<u32>> = vec![Vec::new(); rows];
+        let mut done = vec![false; rows];
+        loop {
+            if cancel.load(Ordering::Relaxed) {
+                return Err(cancelled());
+            }
+            let next: Vec<u32> = if greedy {
+                argmax_rows(&logits)?
+            } else {
+                (0..rows)
+                    .map(|r| samplers[r].sample(&logits.get(r)?))
+                    .collect::<Result<_, _>>()?
+            };
+            for (r, &t) in next.iter().enumerate() {
+                if done[r] {
+                    continue;
+                }
+                if eos.contains(&t) {
+                    done[r] = true;
+                } else {
+                    out[r].push(t);
+                    done[r] = out[r].len() >= cfg.max_new_tokens;
+                }
+            }
+            if done.iter().all(|&d| d) {
+                break;
+            }
+            // Finished rows keep being fed (their last id): the batch moves together and their
+            // outputs are no longer read.
+            logits = self.arch.step(&next, &mut cache)?;
+        }
+        let decode_ms = t1.elapsed().as_secs_f64() * 1e3;
+        let pad = |r: usize| {
+            let ids = &view.input_ids[r];
+            match prepared {
+                Prepared::VideoLlava(i) => i.ids.attention_mask[r].iter().filter(|&&m| m).count(),
+                Prepared::Qwen3Vl(_) => ids.len(),
+            }
+        };
+        let gens = out
+            .into_iter()
+            .enumerate()
+            .map(|(r, tokens)| {
+                Ok(Generation {
+                    text: self.arch.decode(&tokens)?.trim().to_string(),
+                    prompt_tokens: pad(r),
+                    visual_tokens: view.visual_tokens[r],
+                    tokens,
+                    prefill_ms,
+                    decode_ms,
+                })
+            })
+            .collect::<Result<Vec<_>, ModelError>>()?;
+        Ok((gens, first))
+    }
+
+    fn output(&self, g: &Generation, t0: Instant) -> ReporterOutput {
+        tracing::debug!(
+            reporter = %self.cfg.name,
+            prompt_tokens = g.prompt_tokens,
+            visual_tokens = g.visual_tokens,
+            new_tokens = g.tokens.len(),
+            prefill_ms = g.prefill_ms,
+            tokens_per_s = g.tokens_per_s(),
+            "candle generation"
+        );
+        ReporterOutput {
+            text: g.text.clone(),
+            latency_ms: t0.elapsed().as_secs_f64() * 1e3,
+            model: self.cfg.name.clone(),
+        }
+    }
+}
+
+/// Index of the largest value of each row (the first one on ties, as `torch.argmax`).
+fn argmax_rows(logits: &Tensor) -> Result<Vec<u32>, ModelError> {
+    Ok(logits
+        .to_vec2::<f32>()?
+        .iter()
+        .map(|r| {
+            let mut best = 0;
+            for (i, &x) in r.iter().enumerate() {
+                if x > r[best] {
+                    best = i;
+                }
+            }
+            best as u32
+        })
+        .collect())
 }
 
 impl LocalReporter for CandleVlmReporter {
@@ -90,19 +312,44 @@ impl LocalReporter for CandleVlmReporter {
     ) -> Result<ReporterOutput, ModelError> {
         let t0 = Instant::now();
         let g = self.generate_blocking(&clip.frames, cancel)?;
-        tracing::debug!(
-            reporter = %self.cfg.name,
-            prompt_tokens = g.prompt_tokens,
-            visual_tokens = g.visual_tokens,
-            new_tokens = g.tokens.len(),
-            prefill_ms = g.prefill_ms,
-            tokens_per_s = g.tokens_per_s(),
-            "candle generation"
-        );
-        Ok(ReporterOutput {
-            text: g.text,
-            latency_ms: t0.elapsed().as_secs_f64() * 1e3,
-            model: self.cfg.name.clone(),
-        })
+        Ok(self.output(&g, t0))
+    }
+
+    /// One batch for all clips. A clip the processor refuses (no frames, mixed sizes) fails
+    /// alone: the batch then runs clip by clip, so the others still get their answer.
+    fn generate_batch(
+        &self,
+        clips: &[ClipInput],
+        cancel: &AtomicBool,
+    ) -> Vec<Result<ReporterOutput, ModelError>> {
+        if clips.len() <= 1 {
+            return clips.iter().map(|c| self.generate(c, cancel)).collect();
+        }
+        let t0 = Instant::now();
+        let frames: Vec<&[Frame]> = clips.iter().map(|c| &c.frames[..]).collect();
+        let prepared = match self.prepare(&frames) {
+            Ok(p) => p,
+            Err(e) => {
+                tracing::debug!(reporter = %self.cfg.name, error = %e, "batch refused; clip by clip");
+                return clips.iter().map(|c| self.generate(c, cancel)).collect();
+            }
+        };
+        match self.run(&prepared, cancel, t0, false) {
+            Ok((gens, _)) => gens.iter().map(|g| Ok(self.output(g, t0))).collect(),
+            Err(ModelError::Timeout { .. }) => clips
+                .iter()
+                .map(|_| {
+                    Err(ModelError::Timeout {
+                        what: "generation (cancelled)".into(),
+                        after: t0.elapsed(),
+                    })
+                })
+                .collect(),
+            // Each clip then gets its own error (or its answer, if another one broke the batch).
+            Err(e) => {
+                tracing::warn!(reporter = %self.cfg.name, error = %e, "batch failed; clip by clip");
+                clips.iter().map(|c| self.generate(c, cancel)).collect()
+            }
+        }
     }
 }
