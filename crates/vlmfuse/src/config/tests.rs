@@ -179,8 +179,8 @@ fn the_files_embedder_backend_survives_layering_without_the_flag() {
     let cfg = Config::load(&ServeArgs::try_parse_from(["serve", "--config", f]).unwrap()).unwrap();
     let e = cfg.embedder.unwrap();
     assert_eq!((e.backend, e.threads), (EmbedderBackend::Onnx, Some(3)));
-    let args =
-        ServeArgs::try_parse_from(["serve", "--config", f, "--embedder-backend", "candle"]).unwrap();
+    let args = ServeArgs::try_parse_from(["serve", "--config", f, "--embedder-backend", "candle"])
+        .unwrap();
     let e = Config::load(&args).unwrap().embedder.unwrap();
     assert_eq!(e.backend, EmbedderBackend::Candle);
 }
