@@ -504,8 +504,9 @@ fn candle_transformers_qwen3_vl_is_outside_the_tolerance() {
         .to_vec1::<f32>()
         .unwrap();
     let d = max_abs_diff(&logits, &floats(&case["first_logits"]));
-    // The old reporter's `causal_prefill`: text one token at a time, the video span (here from
-    // the first <|vision_start|> to the last <|vision_end|>) as one chunk.
+    // How the service ran candle-transformers' qwen3_vl before it owned the model (its removed
+    // `causal_prefill` mode): text one token at a time, the video span (here from the first
+    // <|vision_start|> to the last <|vision_end|>) as one chunk.
     let model = Qwen3VLModel::new(&cfg, vb2).unwrap();
     let (cs, ce) = (spans[0].0 - 1, spans.last().unwrap().1 + 1);
     let fwd = |chunk: &[u32], off: usize, video: Option<Vec<(usize, usize)>>| {
