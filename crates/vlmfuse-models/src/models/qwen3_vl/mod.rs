@@ -585,7 +585,8 @@ fn visual_tokens(grids: &[[usize; 3]], merge: usize) -> usize {
     grids.iter().map(|g| g[0] * g[1] * g[2]).sum::<usize>() / (merge * merge)
 }
 
-/// Index of the largest value of each row of `[batch, vocab]` logits (first one on ties).
+/// Index of the largest value of each row of `[batch, vocab]` logits (first one on ties, as
+/// `torch.argmax`). The candle reporter decodes both architectures greedily with it.
 pub fn argmax_rows(logits: &Tensor) -> Result<Vec<u32>, ModelError> {
     let rows = logits.to_dtype(DType::F32)?.to_vec2::<f32>()?;
     Ok(rows

@@ -11,6 +11,7 @@ use candle_transformers::generation::LogitsProcessor;
 
 use super::config::{parse_dtype, CandleVlmConfig, DEFAULT_QWEN_FRAMES};
 use super::engine::{Arch, Prepared};
+use crate::models::qwen3_vl::argmax_rows;
 use crate::reporter::{ClipInput, LocalReporter, ReporterOutput};
 use crate::{parse_device, Frame, ModelError};
 
@@ -281,23 +282,6 @@ impl CandleVlmReporter {
             model: self.cfg.name.clone(),
         }
     }
-}
-
-/// Index of the largest value of each row (the first one on ties, as `torch.argmax`).
-fn argmax_rows(logits: &Tensor) -> Result<Vec<u32>, ModelError> {
-    Ok(logits
-        .to_vec2::<f32>()?
-        .iter()
-        .map(|r| {
-            let mut best = 0;
-            for (i, &x) in r.iter().enumerate() {
-                if x > r[best] {
-                    best = i;
-                }
-            }
-            best as u32
-        })
-        .collect())
 }
 
 impl LocalReporter for CandleVlmReporter {
