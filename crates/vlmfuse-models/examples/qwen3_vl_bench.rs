@@ -20,6 +20,7 @@ use vlmfuse_models::models::qwen3_vl::{
     argmax_rows, Cache, LoadOptions, Qwen3Vl, Qwen3VlProcessor,
 };
 use vlmfuse_models::{FrameRef, WeightSource};
+use vlmfuse_testkit::fixtures::qwen3_vl::parity_frame;
 
 struct Args {
     model: PathBuf,
@@ -79,25 +80,7 @@ fn parse() -> Result<Args, String> {
 
 /// The parity tests' synthetic clip.
 fn frames(n: usize, w: usize, h: usize) -> Vec<Vec<u8>> {
-    (0..n)
-        .map(|k| {
-            let mut rgb = Vec::with_capacity(w * h * 3);
-            for y in 0..h {
-                for x in 0..w {
-                    for c in 0..3 {
-                        let v = 3 * x * x
-                            + 5 * y
-                            + 71 * c
-                            + 29 * k
-                            + (x * y) % 17
-                            + 60 * (((x >> 2) + (y >> 2)) & 1);
-                        rgb.push((v % 256) as u8);
-                    }
-                }
-            }
-            rgb
-        })
-        .collect()
+    (0..n).map(|k| parity_frame(w, h, k)).collect()
 }
 
 fn median(mut v: Vec<f64>) -> f64 {

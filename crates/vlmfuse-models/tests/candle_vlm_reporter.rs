@@ -18,6 +18,7 @@ use vlmfuse_models::{
     Frame, LocalReporter, ModelError, PoolConfig, Reporter, ReporterFailure, RoundReporter,
     WeightSource,
 };
+use vlmfuse_testkit::fixtures::qwen3_vl::parity_frame;
 use vlmfuse_testkit::fixtures::video_llava::{SyntheticClip, PARITY_CLIPS};
 use vlmfuse_testkit::fixtures::{write_hf_cache_entry, TinyQwen3Vl, TinyVideoLlava};
 
@@ -73,21 +74,7 @@ fn qwen_clip(case: &Value) -> Vec<Frame> {
     let idx = u32s(&case["indices"]);
     (0..n)
         .map(|i| {
-            let k = k0 + i;
-            let mut rgb = Vec::with_capacity(w * h * 3);
-            for y in 0..h {
-                for x in 0..w {
-                    for c in 0..3 {
-                        let v = 3 * x * x
-                            + 5 * y
-                            + 71 * c
-                            + 29 * k
-                            + (x * y) % 17
-                            + 60 * (((x >> 2) + (y >> 2)) & 1);
-                        rgb.push((v % 256) as u8);
-                    }
-                }
-            }
+            let rgb = parity_frame(w, h, k0 + i);
             Frame {
                 width: w as u32,
                 height: h as u32,

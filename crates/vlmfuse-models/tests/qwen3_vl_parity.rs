@@ -15,6 +15,7 @@ use vlmfuse_models::models::qwen3_vl::{
     VideoProcessorConfig,
 };
 use vlmfuse_models::{FrameRef, ModelError, WeightSource};
+use vlmfuse_testkit::fixtures::qwen3_vl::parity_frame;
 use vlmfuse_testkit::fixtures::TinyQwen3Vl;
 
 const LOGIT_TOL: f32 = 1e-4;
@@ -32,25 +33,7 @@ fn read(name: &str) -> Value {
 
 /// The synthetic clip of the reference script (same integer formula).
 fn frames(n: usize, w: usize, h: usize, k0: usize) -> Vec<Vec<u8>> {
-    (k0..k0 + n)
-        .map(|k| {
-            let mut rgb = Vec::with_capacity(w * h * 3);
-            for y in 0..h {
-                for x in 0..w {
-                    for c in 0..3 {
-                        let v = 3 * x * x
-                            + 5 * y
-                            + 71 * c
-                            + 29 * k
-                            + (x * y) % 17
-                            + 60 * (((x >> 2) + (y >> 2)) & 1);
-                        rgb.push((v % 256) as u8);
-                    }
-                }
-            }
-            rgb
-        })
-        .collect()
+    (k0..k0 + n).map(|k| parity_frame(w, h, k)).collect()
 }
 
 fn refs(frames: &[Vec<u8>], w: usize, h: usize) -> Vec<FrameRef<'_>> {
