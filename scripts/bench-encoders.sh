@@ -23,17 +23,7 @@ SHORT_SIDE="${SHORT_SIDE:-0}"
 OUT="${BENCH_DIR:-$(mktemp -d)}"
 mkdir -p "$OUT"
 
-bash scripts/fetch-assets.sh >/dev/null
-ASSETS="${VLMFUSE_ASSETS:-$HOME/.cache/vlmfuse-assets}"
-MODEL="$ASSETS/bench/clip-vit-b32-random"
-"$PY" scripts/onnx/make_bench_model.py "$MODEL"
-
-CLIP="$OUT/clip-20s-720p-gop30.mp4"
-if [ ! -f "$CLIP" ]; then
-  ffmpeg -hide_banner -loglevel error -nostdin -y -f lavfi \
-    -i "testsrc2=size=1280x720:rate=30:duration=20,hue=H=2*PI*t/3" \
-    -c:v libx264 -preset ultrafast -pix_fmt yuv420p -g 30 "$CLIP"
-fi
+source scripts/bench/clip-model.sh
 
 cargo build --release -p vlmfuse-models --example onnx_embed_bench \
   -p vlmfuse-labeler --example onnx_encoder_bench
