@@ -19,6 +19,23 @@ has no torch and never runs this script. Run it after changing the fixture or th
 
     /work/venv-ref/bin/python scripts/parity/qwen3_vl.py            # builds the fixture with cargo
     /work/venv-ref/bin/python scripts/parity/qwen3_vl.py --fixture DIR
+    /work/venv-ref/bin/python scripts/parity/qwen3_vl.py --candle-transformers
+
+With --candle-transformers it then measures candle-transformers' own `qwen3_vl` against the same
+references (the cargo example `candle_transformers_qwen3_vl`, which needs no torch and can be
+run alone against the committed files): the ids, pixels and grid of the 8-frame case fed as one
+chunk, and as the service ran it before owning the model (text token by token, the video span as
+one chunk). This is the documented reason the models crate carries its own Qwen3-VL, kept as a
+measurement rather than a test so that an upstream fix shows up as a number, not a red build.
+With candle-transformers 0.11.1 (1-D positions instead of M-RoPE, no causal mask inside a chunk,
+tanh GELU in the patch merger):
+
+    case video8_describe, logit range 14.03, tolerance 1e-4
+    one chunk                      max |d| 0.962   (outside)
+    causal text + video chunk      max |d| 0.923   (outside)
+
+When both come within the tolerance, upstream computes what transformers computes and the own
+model could give way to it.
 
 Needs torch 2.15.0, transformers 5.23.0, torchvision 0.29.2 (video processor), numpy,
 safetensors.
@@ -182,6 +199,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--fixture", help="directory written by `write_fixture qwen3_vl` (else built)")
     ap.add_argument("--out", default=OUT)
+    ap.add_argument("--candle-transformers", action="store_true",
+                    help="then measure candle-transformers' qwen3_vl against the references")
     a = ap.parse_args()
     torch.manual_seed(0)
     torch.set_num_threads(max(1, torch.get_num_threads()))
@@ -280,6 +299,33 @@ def main():
                    "video_processor": json.loads(vp.to_json_string()),
                    "cases": prep, "sampling": sampling}, f, indent=1)
     print(f"wrote {a.out}", file=sys.stderr)
+    if a.candle_transformers:
+        compare_candle_transformers(a.fixture, os.path.join(a.out, "reference.json"))
+
+
+def compare_candle_transformers(fixture, reference):
+    """Runs the cargo example and prints its verdict (see the module docstring)."""
+    out = subprocess.run(
+        ["cargo", "run", "-q", "-p", "vlmfuse-models", "--example",
+         "candle_transformers_qwen3_vl", "--", "--fixture", fixture, "--reference", reference],
+        cwd=ROOT, check=True, capture_output=True, text=True).stdout
+    r = json.loads(out.strip().splitlines()[-1])
+    version = "?"
+    with open(os.path.join(ROOT, "Cargo.lock")) as f:
+        lock = f.read().split("[[package]]")
+    for p in lock:
+        if 'name = "candle-transformers"' in p:
+            version = p.split('version = "')[1].split('"')[0]
+    print(f"candle-transformers {version} qwen3_vl, case {r['case']}, "
+          f"logit range {r['logit_range']:.2f}, tolerance {r['tolerance']:g}:", file=sys.stderr)
+    for key, what in [("one_chunk", "one chunk"),
+                      ("causal_text_video_chunk", "causal text + video chunk")]:
+        d = r[f"{key}_max_abs_diff"]
+        verdict = "within" if d <= r["tolerance"] else "outside"
+        print(f"  {what:<28} max |d| {d:.3g} ({verdict})", file=sys.stderr)
+    if r["one_chunk_within_tolerance"] and r["causal_within_tolerance"]:
+        print("  upstream now agrees with transformers: the own Qwen3-VL could give way to it",
+              file=sys.stderr)
 
 
 if __name__ == "__main__":
