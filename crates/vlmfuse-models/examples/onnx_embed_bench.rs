@@ -167,11 +167,11 @@ fn main() {
                 let e = ClipEmbedder::load(&WeightSource::local(&args.model), &Device::Cpu)
                     .expect("load the candle embedder");
                 // The candle backend's own preprocessing, timed alone.
-                let size = e.settings().image_size;
+                let p =
+                    vlmfuse_models::imaging::ImageProcessor::clip(e.settings().image_size as u32);
                 let (pre, _) = time(args.reps, || {
-                    for f in &frames {
-                        vlmfuse_models::embed::preprocess::clip_preprocess(*f, size).unwrap();
-                    }
+                    p.process_batch(&frames, std::num::NonZeroUsize::MIN)
+                        .unwrap();
                 });
                 (
                     Box::new(e),

@@ -5,8 +5,7 @@
 use std::path::{Path, PathBuf};
 
 use candle_core::Device;
-use vlmfuse_models::embed::image_processor::ImageProcessor;
-use vlmfuse_models::embed::preprocess::clip_preprocess;
+use vlmfuse_models::imaging::ImageProcessor;
 use vlmfuse_models::{
     ClipEmbedder, ContextEmbedder, FrameRef, OnnxClipConfig, OnnxClipEmbedder, WeightSource,
 };
@@ -99,7 +98,7 @@ impl Expected {
     }
 }
 
-/// What CLIPImageProcessor (PIL) made of the fixture frames, `[4, 3, 32, 32]`.
+/// What CLIPImageProcessor made of the fixture frames, `[4, 3, 32, 32]`.
 fn hf_pixels() -> Vec<f32> {
     std::fs::read(data("tiny-clip/pixel_values.f32"))
         .unwrap()
@@ -198,7 +197,7 @@ fn same_weights_as_candle_give_the_same_embeddings() {
     // Same pixels (the candle backend's own preprocessing) through both engines.
     let mut px = Vec::new();
     for f in &frames {
-        px.extend(clip_preprocess(*f, 32).unwrap());
+        px.extend(ImageProcessor::clip(32).apply(*f).unwrap().0);
     }
     let ours = onnx.pixel_embeddings(&px, frames.len()).unwrap();
     let theirs = candle
@@ -216,8 +215,8 @@ fn same_weights_as_candle_give_the_same_embeddings() {
     );
     assert!(c >= 0.99999, "clip embedding ort vs candle: {c}");
 
-    // Each backend with its own preprocessing: PIL-exact here, f32 in candle (within a grey
-    // level on these frames), so the clip embeddings still agree closely.
+    // Each backend with its own preprocessing (one image module: the same pixels), so the
+    // clip embeddings agree closely.
     let c = cosine(
         &onnx.embed(&frames).unwrap(),
         &candle.embed(&frames).unwrap(),

@@ -7,8 +7,8 @@ use candle_transformers::models::clip::text_model::Activation;
 use candle_transformers::models::clip::vision_model::{ClipVisionConfig, ClipVisionTransformer};
 use serde::Deserialize;
 
-use super::preprocess::clip_preprocess;
 use super::ContextEmbedder;
+use crate::imaging::ImageProcessor;
 use crate::weights::{var_builder, WeightSource};
 use crate::{FrameRef, ModelError};
 
@@ -129,6 +129,9 @@ pub struct ClipEmbedder {
     settings: ClipVisionSettings,
     vision: ClipVisionTransformer,
     projection: candle_nn::Linear,
+    /// CLIPImageProcessor at the tower's input size (as the ONNX backend without a
+    /// `preprocessor_config.json`), so both backends feed the same pixels.
+    processor: ImageProcessor,
     device: Device,
 }
 
@@ -163,11 +166,13 @@ impl ClipEmbedder {
         .map_err(bad)?;
         tracing::info!(source = %source.describe(), dim = settings.projection_dim,
             image_size = settings.image_size, "loaded CLIP embedder");
+        let processor = ImageProcessor::clip(settings.image_size as u32);
         Ok(Self {
             name: format!("clip:{}", source.describe()),
             settings,
             vision,
             projection,
+            processor,
             device: device.clone(),
         })
     }
@@ -188,10 +193,9 @@ impl ClipEmbedder {
             return Err(ModelError::InvalidInput("no frames to embed".into()));
         }
         let s = self.settings.image_size;
-        let mut buf = Vec::with_capacity(frames.len() * 3 * s * s);
-        for f in frames {
-            buf.extend(clip_preprocess(*f, s)?);
-        }
+        let (buf, _) = self
+            .processor
+            .process_batch(frames, std::num::NonZeroUsize::MIN)?;
         let pixels = Tensor::from_vec(buf, (frames.len(), 3, s, s), &self.device)?;
         let feats = self.vision.forward(&pixels)?;
         Ok(self.projection.forward(&feats)?)

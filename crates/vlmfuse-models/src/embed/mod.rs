@@ -2,9 +2,7 @@
 //! clips by these vectors, so they must be deterministic and unit-norm.
 
 mod clip;
-pub mod image_processor;
 mod onnx;
-pub mod preprocess;
 
 pub use clip::{ClipEmbedder, ClipVisionSettings};
 pub use onnx::{OnnxClipConfig, OnnxClipEmbedder, ONNX_MODEL_CANDIDATES};

@@ -21,8 +21,8 @@ use vlmfuse_ort::ort::session::{Session, SessionInputValue};
 use vlmfuse_ort::ort::value::{Tensor, TensorElementType, TensorRef};
 use vlmfuse_ort::{describe_outlets, OrtError, SessionOptions};
 
-use super::image_processor::ImageProcessor;
 use super::ContextEmbedder;
+use crate::imaging::ImageProcessor;
 use crate::weights::WeightSource;
 use crate::{FrameRef, ModelError};
 

@@ -26,8 +26,7 @@ use candle_nn::VarBuilder;
 
 pub use config::{Config, TextConfig, VisionConfig};
 pub use processor::{
-    resize_bicubic_u8, smart_resize, ProcessedVideo, Qwen3VlProcessor, VideoProcessor,
-    VideoProcessorConfig,
+    smart_resize, ProcessedVideo, Qwen3VlProcessor, VideoProcessor, VideoProcessorConfig,
 };
 
 use crate::lora::{load_adapter, merge_adapter};

@@ -4,9 +4,8 @@
 //! - frame sampling at the config's `fps` between `min_frames` and `max_frames`;
 //! - `smart_resize` against a pixel budget counted over frames x height x width (`size`), or a
 //!   per-frame cap when `cap_pixels_per_frame` is set;
-//! - antialiased bicubic resizing **to uint8**, bit-exact with torchvision's CPU kernel (16-bit
-//!   fixed-point weights, horizontal pass, rounding, vertical pass), then the fused
-//!   rescale-and-normalise in f32;
+//! - antialiased bicubic resizing **to uint8**, bit-exact with torchvision's CPU kernel
+//!   ([`crate::imaging`], torch arithmetic), then the fused rescale-and-normalise in f32;
 //! - patch rows in the order the vision tower's 2x2 merger expects;
 //! - the prompt: per temporal patch group `<{t:.1f} seconds><|vision_start|>` + one
 //!   `<|video_pad|>` per merged token + `<|vision_end|>`, `t` the mean time of the group.
@@ -17,6 +16,7 @@ use serde_json::Value;
 use tokenizers::Tokenizer;
 
 use super::{Config, Sequence, VideoInput};
+use crate::imaging::{Arith, Normalize, Resample, Resizer};
 use crate::weights::WeightSource;
 use crate::{FrameRef, ModelError};
 
@@ -311,134 +311,6 @@ pub fn smart_resize(
     Ok((h_bar as usize, w_bar as usize))
 }
 
-/// The bicubic kernel with a = -0.5, written as torch writes it (the float grouping matters
-/// for bit-exact weights).
-fn cubic(x: f64) -> f64 {
-    const A: f64 = -0.5;
-    let x = x.abs();
-    if x < 1.0 {
-        ((A + 2.0) * x - (A + 3.0)) * x * x + 1.0
-    } else if x < 2.0 {
-        ((A * x - 5.0 * A) * x + 8.0 * A) * x - 4.0 * A
-    } else {
-        0.0
-    }
-}
-
-/// Antialiased resampling weights for one axis as 16-bit fixed point: per output sample the
-/// first input index and its weights, plus the precision (bits) they are scaled by.
-fn int_weights(in_size: usize, out_size: usize) -> (Vec<(usize, Vec<i32>)>, u32) {
-    let scale = in_size as f64 / out_size as f64;
-    let support = if scale >= 1.0 { 2.0 * scale } else { 2.0 };
-    let invscale = if scale >= 1.0 { 1.0 / scale } else { 1.0 };
-    let mut float = Vec::with_capacity(out_size);
-    let mut w_max = 0.0f64;
-    for i in 0..out_size {
-        let center = scale * (i as f64 + 0.5);
-        let xmin = ((center - support + 0.5) as i64).max(0) as usize;
-        let xmax = ((center + support + 0.5) as i64).min(in_size as i64) as usize;
-        let mut w: Vec<f64> = (xmin..xmax)
-            .map(|x| cubic((x as f64 - center + 0.5) * invscale))
-            .collect();
-        let total: f64 = w.iter().sum();
-        if total != 0.0 {
-            for v in w.iter_mut() {
-                *v /= total;
-                w_max = w_max.max(*v);
-            }
-        }
-        float.push((xmin, w));
-    }
-    let mut prec = 0u32;
-    while prec < 22 {
-        let next = (0.5 + w_max * (1u64 << (prec + 1)) as f64) as i64;
-        if next >= 1 << 15 {
-            break;
-        }
-        prec += 1;
-    }
-    let ints = float
-        .into_iter()
-        .map(|(xmin, w)| {
-            let w = w
-                .into_iter()
-                .map(|v| {
-                    let v = v * (1u64 << prec) as f64;
-                    if v < 0.0 {
-                        (-0.5 + v) as i32
-                    } else {
-                        (0.5 + v) as i32
-                    }
-                })
-                .collect();
-            (xmin, w)
-        })
-        .collect();
-    (ints, prec)
-}
-
-/// One separable pass along the "x" axis of a `[rows, in_len, 3]` u8 buffer, addressed through
-/// strides so the same code runs horizontally and vertically.
-#[allow(clippy::too_many_arguments)]
-fn resample_axis(
-    src: &[u8],
-    rows: usize,
-    in_len: usize,
-    out_len: usize,
-    row_stride_in: usize,
-    step_in: usize,
-    row_stride_out: usize,
-    step_out: usize,
-) -> Vec<u8> {
-    let (w, prec) = int_weights(in_len, out_len);
-    let half = 1i64 << (prec - 1);
-    let mut dst = vec![0u8; rows.max(1) * out_len * 3];
-    for r in 0..rows {
-        for (o, (xmin, ws)) in w.iter().enumerate() {
-            let mut acc = [half; 3];
-            for (k, &wk) in ws.iter().enumerate() {
-                let p = r * row_stride_in + (xmin + k) * step_in;
-                for c in 0..3 {
-                    acc[c] += src[p + c] as i64 * wk as i64;
-                }
-            }
-            let q = r * row_stride_out + o * step_out;
-            for c in 0..3 {
-                dst[q + c] = (acc[c] >> prec).clamp(0, 255) as u8;
-            }
-        }
-    }
-    dst
-}
-
-/// Resizes a packed RGB24 frame to `out_w x out_h` exactly as torchvision's
-/// `resize(uint8, BICUBIC, antialias=True)` does on CPU (the reference's resize): horizontal
-/// pass to uint8, then vertical pass to uint8. Returns packed RGB24.
-pub fn resize_bicubic_u8(
-    frame: FrameRef,
-    out_w: usize,
-    out_h: usize,
-) -> Result<Vec<u8>, ModelError> {
-    frame.validate()?;
-    if out_w == 0 || out_h == 0 {
-        return Err(ModelError::InvalidInput(format!(
-            "resize target {out_w}x{out_h}"
-        )));
-    }
-    let (in_w, in_h) = (frame.width as usize, frame.height as usize);
-    let mut buf: Vec<u8> = frame.rgb.to_vec();
-    let mut w = in_w;
-    if out_w != in_w {
-        buf = resample_axis(&buf, in_h, in_w, out_w, in_w * 3, 3, out_w * 3, 3);
-        w = out_w;
-    }
-    if out_h != in_h {
-        // Columns as rows: step between samples is a whole row.
-        buf = resample_axis(&buf, w, in_h, out_h, 3, w * 3, 3, w * 3);
-    }
-    Ok(buf)
-}
-
 /// A processed clip: the vision tower's input and what the prompt needs to describe it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ProcessedVideo {
@@ -562,37 +434,29 @@ impl VideoProcessor {
                 ps * ms
             )));
         }
-        // Fused rescale + normalise, as `rescale_and_normalize`: (x - mean/r) / (std/r) in f32.
-        let (mut mul, mut sub) = ([1f32; 3], [0f32; 3]);
-        for ch in 0..3 {
-            let (m, s) = (c.image_mean[ch] as f64, c.image_std[ch] as f64);
-            match (c.do_rescale, c.do_normalize) {
-                (true, true) => {
-                    let r = c.rescale_factor;
-                    sub[ch] = (m / r) as f32;
-                    mul[ch] = (s / r) as f32;
-                }
-                (false, true) => {
-                    sub[ch] = m as f32;
-                    mul[ch] = s as f32;
-                }
-                (true, false) => mul[ch] = (1.0 / c.rescale_factor) as f32,
-                (false, false) => {}
-            }
+        // Rescale + normalise as the torchvision processors fuse them.
+        let table = Normalize {
+            rescale: c.do_rescale.then_some(c.rescale_factor),
+            mean: c.image_mean.map(f64::from),
+            std: c.image_std.map(f64::from),
+            normalize: c.do_normalize,
+            arith: Arith::Torch,
         }
+        .table();
+        let mut resizer = Resizer::new();
+        let mut rgb = Vec::new();
         let mut planes: Vec<Vec<f32>> = Vec::with_capacity(frames.len() + tps);
         for f in frames {
-            let rgb = if (rw, rh) == (in_w, in_h) {
-                f.rgb.to_vec()
-            } else {
-                resize_bicubic_u8(*f, rw, rh)?
-            };
+            resizer.resize_crop(
+                *f,
+                (rw, rh),
+                None,
+                Resample::Bicubic,
+                Arith::Torch,
+                &mut rgb,
+            )?;
             let mut chw = vec![0f32; 3 * rh * rw];
-            for (i, px) in rgb.chunks_exact(3).enumerate() {
-                for ch in 0..3 {
-                    chw[ch * rh * rw + i] = (px[ch] as f32 - sub[ch]) / mul[ch];
-                }
-            }
+            Normalize::hwc_to_chw(&table, &rgb, &mut chw);
             planes.push(chw);
         }
         let mut times = timestamps.to_vec();
@@ -879,29 +743,6 @@ mod tests {
         // Short clip: min_frames, but never more than the clip has.
         assert_eq!(vp.sample_indices(1, 30.0), vec![0]);
         assert!(vp.sample_indices(0, 30.0).is_empty());
-    }
-
-    #[test]
-    fn identity_resize_is_exact_and_bad_sizes_are_refused() {
-        let rgb: Vec<u8> = (0..4 * 3 * 3).map(|i| (i * 7 % 256) as u8).collect();
-        let f = FrameRef {
-            width: 4,
-            height: 3,
-            rgb: &rgb,
-        };
-        assert_eq!(resize_bicubic_u8(f, 4, 3).unwrap(), rgb);
-        assert!(resize_bicubic_u8(f, 0, 3).is_err());
-        // A flat image stays flat through any resize.
-        let flat = vec![77u8; 10 * 6 * 3];
-        let f = FrameRef {
-            width: 10,
-            height: 6,
-            rgb: &flat,
-        };
-        assert!(resize_bicubic_u8(f, 7, 13)
-            .unwrap()
-            .iter()
-            .all(|&v| v == 77));
     }
 
     #[test]

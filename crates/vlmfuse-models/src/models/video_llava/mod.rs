@@ -25,7 +25,7 @@ use candle_nn::VarBuilder;
 
 pub use config::{FeatureLayers, SelectStrategy, VideoLlavaConfig};
 pub use processor::{
-    Arith, EncodedBatch, ImageOps, ImagePixels, Resample, VideoLlavaProcessor, VideoPixels,
+    Arith, EncodedBatch, ImagePixels, ImageProcessor, Resample, VideoLlavaProcessor, VideoPixels,
 };
 pub use text::KvCache;
 

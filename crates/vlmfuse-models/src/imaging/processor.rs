@@ -1,73 +1,57 @@
-//! `CLIPImageProcessor` as a checkpoint's `preprocessor_config.json` describes it (resize the
-//! shortest edge, center-crop, rescale, normalise), fast enough that preparing frames never
-//! dominates an embed.
-//!
-//! Why this and not [`super::preprocess::clip_preprocess`]: that one hard-codes the OpenAI CLIP
-//! statistics and a square crop equal to the resize, and resamples in scalar f32 (within about
-//! one grey level of PIL on smooth images, a few on sharp noise). Here the resampling is
-//! `fast_image_resize`'s SIMD convolution on `u8` pixels, run as PIL runs it (horizontal pass,
-//! round to `u8`, vertical pass, round): the pixels equal what transformers' `CLIPImageProcessor`
-//! (PIL) makes, to float rounding (the tests check it against its output), at a fraction of the
-//! cost. The crop is mapped back onto the source, so only the pixels that survive it are
-//! resampled, and normalisation is a 256-entry table per channel.
+//! A CLIP-style image processor as a checkpoint's processor config describes it (resize,
+//! center-crop, rescale, normalise): `CLIPImageProcessor` for the CLIP embedders,
+//! `VideoLlavaImageProcessor` / `VideoLlavaVideoProcessor` for VideoLLaVA.
 
 use std::num::NonZeroUsize;
 
-use fast_image_resize as fir;
 use serde_json::Value;
 
-use super::preprocess::{resized_dims, CLIP_MEAN, CLIP_STD};
+use super::{
+    shortest_edge_dims, Arith, Normalize, Resample, ResizeTo, Resizer, OPENAI_CLIP_MEAN,
+    OPENAI_CLIP_STD,
+};
 use crate::{FrameRef, ModelError};
 
-/// How frames are resized before the crop.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum ResizeTo {
-    /// Shortest edge to this many pixels, aspect kept (transformers' `{"shortest_edge": n}`).
-    ShortestEdge(u32),
-    /// Exactly this size, aspect not kept (`{"height": h, "width": w}`).
-    Exact { width: u32, height: u32 },
-}
-
-/// PIL's resampling filters that CLIP-style processors use (`resample` 3 and 2).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Resample {
-    /// PIL `BICUBIC` (Catmull-Rom, a = -0.5), CLIP's choice.
-    Bicubic,
-    /// PIL `BILINEAR`.
-    Bilinear,
-}
-
-/// The preprocessing of one model: frame → normalised CHW floats.
+/// The preprocessing of one model input: frame → normalised CHW floats.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ImageProcessor {
     pub resize: Option<ResizeTo>,
     pub resample: Resample,
     /// Center crop `(width, height)` after the resize.
     pub crop: Option<(u32, u32)>,
-    /// Multiplier from `u8` to the model's range (1/255 unless `do_rescale` is false).
-    pub rescale: f32,
-    /// Per-channel mean and std (0 and 1 when `do_normalize` is false).
-    pub mean: [f32; 3],
-    pub std: [f32; 3],
+    /// Multiplier from `u8` to the model's range (`do_rescale`'s `rescale_factor`), or none.
+    pub rescale: Option<f64>,
+    /// Per-channel mean and std; 0 and 1 when `do_normalize` is false.
+    pub mean: [f64; 3],
+    pub std: [f64; 3],
+    pub normalize: bool,
+    /// Whose resampling and float order: torch for transformers 5's fast (torchvision) image
+    /// processors and every video processor, Pillow for the slow image processors.
+    pub arith: Arith,
 }
 
 impl ImageProcessor {
-    /// OpenAI CLIP's processor for a square input of `size` (transformers' defaults).
+    /// OpenAI CLIP's processor for a square input of `size` (transformers' defaults), with
+    /// torch's arithmetic: transformers 5 loads `CLIPImageProcessor` configs into the fast
+    /// (torchvision) processor.
     pub fn clip(size: u32) -> Self {
         Self {
             resize: Some(ResizeTo::ShortestEdge(size)),
             resample: Resample::Bicubic,
             crop: Some((size, size)),
-            rescale: 1.0 / 255.0,
-            mean: CLIP_MEAN,
-            std: CLIP_STD,
+            rescale: Some(1.0 / 255.0),
+            mean: OPENAI_CLIP_MEAN,
+            std: OPENAI_CLIP_STD,
+            normalize: true,
+            arith: Arith::Torch,
         }
     }
 
-    /// Reads a `preprocessor_config.json` (CLIPImageProcessor / CLIPFeatureExtractor layout).
-    /// A field that is absent means what it means to transformers (its defaults are CLIP's).
-    pub fn from_preprocessor_config(v: &Value) -> Result<Self, ModelError> {
-        let bad = |m: String| ModelError::BadConfig(format!("preprocessor_config.json: {m}"));
+    /// Reads a processor config (CLIPImageProcessor / CLIPFeatureExtractor layout, VideoLLaVA's
+    /// image and video processors). A field that is absent means what it means to transformers
+    /// (its defaults are CLIP's). A crop larger than the resize is allowed (it pads).
+    pub fn from_json(v: &Value, arith: Arith) -> Result<Self, ModelError> {
+        let bad = |m: String| ModelError::BadConfig(format!("processor config: {m}"));
         let flag = |k: &str| -> Result<bool, ModelError> {
             match v.get(k) {
                 None | Some(Value::Null) => Ok(true),
@@ -96,31 +80,30 @@ impl ImageProcessor {
         } else {
             None
         };
-        let resample = match v.get("resample").and_then(Value::as_u64) {
-            None | Some(3) => Resample::Bicubic,
-            Some(2) => Resample::Bilinear,
-            Some(r) => {
-                return Err(bad(format!(
+        let resample = match v.get("resample") {
+            None | Some(Value::Null) => Resample::Bicubic,
+            Some(r) => r.as_u64().and_then(Resample::from_pil).ok_or_else(|| {
+                bad(format!(
                     "`resample` {r} is not supported (2 = bilinear, 3 = bicubic)"
-                )))
-            }
+                ))
+            })?,
         };
         let rescale = if flag("do_rescale")? {
-            match v.get("rescale_factor") {
+            Some(match v.get("rescale_factor") {
                 None | Some(Value::Null) => 1.0 / 255.0,
                 Some(f) => f
                     .as_f64()
                     .filter(|f| f.is_finite() && *f > 0.0)
-                    .ok_or_else(|| bad(format!("`rescale_factor` {f} is not a positive number")))?
-                    as f32,
-            }
+                    .ok_or_else(|| bad(format!("`rescale_factor` {f} is not a positive number")))?,
+            })
         } else {
-            1.0
+            None
         };
-        let (mean, std) = if flag("do_normalize")? {
+        let normalize = flag("do_normalize")?;
+        let (mean, std) = if normalize {
             (
-                triple(v, "image_mean", CLIP_MEAN).map_err(bad)?,
-                triple(v, "image_std", CLIP_STD).map_err(bad)?,
+                triple(v, "image_mean", OPENAI_CLIP_MEAN).map_err(bad)?,
+                triple(v, "image_std", OPENAI_CLIP_STD).map_err(bad)?,
             )
         } else {
             ([0.0; 3], [1.0; 3])
@@ -130,56 +113,66 @@ impl ImageProcessor {
                 "`image_std` {std:?} has a zero or non-finite entry"
             )));
         }
-        let p = Self {
+        Ok(Self {
             resize,
             resample,
             crop,
             rescale,
             mean,
             std,
-        };
-        p.check()?;
-        Ok(p)
+            normalize,
+            arith,
+        })
     }
 
-    fn check(&self) -> Result<(), ModelError> {
-        let bad = |m: String| ModelError::BadConfig(format!("preprocessor_config.json: {m}"));
-        match self.resize {
-            Some(ResizeTo::ShortestEdge(0)) | Some(ResizeTo::Exact { width: 0, .. }) => {
-                return Err(bad("resize to 0 pixels".into()))
+    /// A `preprocessor_config.json` for a fixed-size model input (the CLIP embedders): as
+    /// [`from_json`](Self::from_json) with torch's arithmetic, and the crop must fit inside the
+    /// resize. transformers would pad; no CLIP checkpoint is configured that way, so this
+    /// refuses instead of inventing padding.
+    pub fn from_preprocessor_config(v: &Value) -> Result<Self, ModelError> {
+        let p = Self::from_json(v, Arith::Torch).map_err(|e| match e {
+            ModelError::BadConfig(m) => {
+                ModelError::BadConfig(m.replacen("processor config", "preprocessor_config.json", 1))
             }
-            Some(ResizeTo::Exact { height: 0, .. }) => {
-                return Err(bad("resize to 0 pixels".into()))
-            }
-            _ => {}
-        }
-        if let Some((w, h)) = self.crop {
-            if w == 0 || h == 0 {
-                return Err(bad("crop to 0 pixels".into()));
-            }
-            // transformers pads when the crop is larger than the resized frame; no CLIP
-            // checkpoint is configured that way, so refuse instead of inventing padding.
-            let fits = match self.resize {
+            e => e,
+        })?;
+        if let Some((w, h)) = p.crop {
+            let fits = match p.resize {
                 Some(ResizeTo::ShortestEdge(s)) => w <= s && h <= s,
                 Some(ResizeTo::Exact { width, height }) => w <= width && h <= height,
                 None => true,
             };
             if !fits {
-                return Err(bad(format!(
-                    "crop {w}x{h} is larger than the resize {:?}",
-                    self.resize
+                return Err(ModelError::BadConfig(format!(
+                    "preprocessor_config.json: crop {w}x{h} is larger than the resize {:?}",
+                    p.resize
                 )));
             }
         }
-        Ok(())
+        Ok(p)
+    }
+
+    /// `(width, height)` after the resize, before the crop.
+    pub fn resized(&self, w: u32, h: u32) -> (u32, u32) {
+        match self.resize {
+            Some(ResizeTo::ShortestEdge(s)) => {
+                let (nw, nh) = shortest_edge_dims(w as usize, h as usize, s as usize);
+                (nw as u32, nh as u32)
+            }
+            Some(ResizeTo::Exact { width, height }) => (width, height),
+            None => (w, h),
+        }
     }
 
     /// `(width, height)` of the model input this produces from a `w × h` frame.
     pub fn output_size(&self, w: u32, h: u32) -> (u32, u32) {
-        if let Some(c) = self.crop {
-            return c;
-        }
-        self.resized(w, h)
+        self.crop.unwrap_or_else(|| self.resized(w, h))
+    }
+
+    /// [`output_size`](Self::output_size) in `usize`.
+    pub fn output_dims(&self, w: usize, h: usize) -> (usize, usize) {
+        let (w, h) = self.output_size(w as u32, h as u32);
+        (w as usize, h as usize)
     }
 
     /// The output size when it does not depend on the frame (there is a crop or an exact
@@ -192,36 +185,65 @@ impl ImageProcessor {
         }
     }
 
-    fn resized(&self, w: u32, h: u32) -> (u32, u32) {
-        match self.resize {
-            Some(ResizeTo::ShortestEdge(s)) => {
-                let (nw, nh) = resized_dims(w, h, s as usize);
-                (nw as u32, nh as u32)
-            }
-            Some(ResizeTo::Exact { width, height }) => (width, height),
-            None => (w, h),
+    /// The rescale and normalisation step.
+    pub fn normalizer(&self) -> Normalize {
+        Normalize {
+            rescale: self.rescale,
+            mean: self.mean,
+            std: self.std,
+            normalize: self.normalize,
+            arith: self.arith,
         }
     }
 
-    fn filter(&self) -> fir::FilterType {
-        match self.resample {
-            Resample::Bicubic => fir::FilterType::CatmullRom,
-            Resample::Bilinear => fir::FilterType::Bilinear,
-        }
+    /// The uint8 image after resize and crop (HWC) and its `(w, h)`.
+    pub fn resize_crop(&self, frame: FrameRef) -> Result<(Vec<u8>, usize, usize), ModelError> {
+        let mut out = Vec::new();
+        let (w, h) = self.resize_crop_with(&mut Resizer::new(), frame, &mut out)?;
+        Ok((out, w, h))
     }
 
-    /// Per-channel table `u8 → normalised float`, so normalisation costs one lookup per value.
-    fn table(&self) -> [[f32; 256]; 3] {
-        let mut t = [[0f32; 256]; 3];
-        for (c, row) in t.iter_mut().enumerate() {
-            for (v, out) in row.iter_mut().enumerate() {
-                *out = (v as f32 * self.rescale - self.mean[c]) / self.std[c];
-            }
+    fn resize_crop_with(
+        &self,
+        r: &mut Resizer,
+        frame: FrameRef,
+        out: &mut Vec<u8>,
+    ) -> Result<(usize, usize), ModelError> {
+        frame.validate()?;
+        let (nw, nh) = self.resized(frame.width, frame.height);
+        if nw == 0 || nh == 0 {
+            return Err(ModelError::InvalidInput(format!(
+                "frame {}x{} resizes to nothing",
+                frame.width, frame.height
+            )));
         }
-        t
+        let crop = self.crop.map(|(w, h)| (w as usize, h as usize));
+        r.resize_crop(
+            frame,
+            (nw as usize, nh as usize),
+            crop,
+            self.resample,
+            self.arith,
+            out,
+        )
+    }
+
+    /// CHW f32 pixel values of a resized and cropped uint8 image.
+    pub fn to_pixel_values(&self, img: &[u8], w: usize, h: usize) -> Vec<f32> {
+        let mut out = vec![0f32; 3 * w * h];
+        Normalize::hwc_to_chw(&self.normalizer().table(), &img[..3 * w * h], &mut out);
+        out
+    }
+
+    /// Resize, crop, rescale, normalise: CHW f32 and `(w, h)`.
+    pub fn apply(&self, frame: FrameRef) -> Result<(Vec<f32>, usize, usize), ModelError> {
+        let (img, w, h) = self.resize_crop(frame)?;
+        Ok((self.to_pixel_values(&img, w, h), w, h))
     }
 
     /// One frame into `out` (CHW, `3 × height × width` of [`output_size`](Self::output_size)).
+    /// For fixed-size model inputs: a frame smaller than the crop (without a resize) is an
+    /// error rather than padded.
     pub fn process_into(&self, frame: FrameRef, out: &mut [f32]) -> Result<(), ModelError> {
         Worker::new(self).process_into(frame, out)
     }
@@ -290,10 +312,8 @@ impl ImageProcessor {
 /// Per-thread state: the resizer keeps its scratch buffers between frames.
 struct Worker<'a> {
     p: &'a ImageProcessor,
-    resizer: fir::Resizer,
+    resizer: Resizer,
     table: [[f32; 256]; 3],
-    /// After the horizontal pass: `crop width × frame height`.
-    tmp: Vec<u8>,
     rgb: Vec<u8>,
 }
 
@@ -301,9 +321,8 @@ impl<'a> Worker<'a> {
     fn new(p: &'a ImageProcessor) -> Self {
         Self {
             p,
-            resizer: fir::Resizer::new(),
-            table: p.table(),
-            tmp: Vec::new(),
+            resizer: Resizer::new(),
+            table: p.normalizer().table(),
             rgb: Vec::new(),
         }
     }
@@ -325,57 +344,9 @@ impl<'a> Worker<'a> {
                 out.len()
             )));
         }
-        // transformers' center_crop: top = (h - crop) // 2, in the resized frame. Mapped back
-        // onto the source so that only the kept region is resampled; the filter taps still read
-        // the pixels around it, as a full resize followed by a crop would.
-        let (left, top) = ((nw - cw) / 2, (nh - ch) / 2);
-        let sx = fw as f64 / nw as f64;
-        let sy = fh as f64 / nh as f64;
-        // Two single-direction passes, horizontal first, each rounding to u8: PIL's order. (One
-        // two-pass call would run the vertical pass first for u8 images, which rounds and clamps
-        // bicubic overshoot at another point and drifts by a few grey levels on sharp detail.)
-        let src = fir::images::ImageRef::new(fw, fh, frame.rgb, fir::PixelType::U8x3)
-            .map_err(|e| ModelError::InvalidInput(format!("frame buffer: {e}")))?;
-        let alg = fir::ResizeAlg::Convolution(self.p.filter());
-        let resize_err = |e: fir::ResizeError| {
-            ModelError::InvalidInput(format!("resize {fw}x{fh} → {cw}x{ch}: {e}"))
-        };
-        self.tmp.resize(cw as usize * fh as usize * 3, 0);
-        let mut tmp =
-            fir::images::Image::from_slice_u8(cw, fh, &mut self.tmp, fir::PixelType::U8x3)
-                .map_err(|e| ModelError::InvalidInput(format!("resize buffer: {e}")))?;
-        let horizontal = fir::ResizeOptions::new().resize_alg(alg).crop(
-            left as f64 * sx,
-            0.0,
-            cw as f64 * sx,
-            fh as f64,
-        );
-        self.resizer
-            .resize(&src, &mut tmp, &horizontal)
-            .map_err(resize_err)?;
-        self.rgb.resize(want, 0);
-        let mut dst =
-            fir::images::Image::from_slice_u8(cw, ch, &mut self.rgb, fir::PixelType::U8x3)
-                .map_err(|e| ModelError::InvalidInput(format!("resize buffer: {e}")))?;
-        let vertical = fir::ResizeOptions::new().resize_alg(alg).crop(
-            0.0,
-            top as f64 * sy,
-            cw as f64,
-            ch as f64 * sy,
-        );
-        self.resizer
-            .resize(&tmp, &mut dst, &vertical)
-            .map_err(resize_err)?;
-        // HWC u8 → CHW normalised floats.
-        let plane = cw as usize * ch as usize;
-        let (r, rest) = out.split_at_mut(plane);
-        let (g, b) = rest.split_at_mut(plane);
-        let [tr, tg, tb] = &self.table;
-        for (i, px) in self.rgb.chunks_exact(3).enumerate() {
-            r[i] = tr[px[0] as usize];
-            g[i] = tg[px[1] as usize];
-            b[i] = tb[px[2] as usize];
-        }
+        self.p
+            .resize_crop_with(&mut self.resizer, frame, &mut self.rgb)?;
+        Normalize::hwc_to_chw(&self.table, &self.rgb, out);
         Ok(())
     }
 }
@@ -399,11 +370,14 @@ fn parse_size(s: &Value, shortest_ok: bool) -> Result<ResizeTo, String> {
             }
         }),
         Value::Object(o) => {
-            if let Some(n) = o.get("shortest_edge") {
-                if o.contains_key("longest_edge") {
+            if let Some(n) = o.get("shortest_edge").filter(|n| !n.is_null()) {
+                if o.get("longest_edge").is_some_and(|x| !x.is_null()) {
                     return Err("`longest_edge` is not supported".into());
                 }
                 return px(n).map(ResizeTo::ShortestEdge);
+            }
+            if o.get("longest_edge").is_some_and(|x| !x.is_null()) {
+                return Err("`longest_edge` is not supported".into());
             }
             match (o.get("height"), o.get("width")) {
                 (Some(h), Some(w)) => Ok(ResizeTo::Exact {
@@ -419,21 +393,20 @@ fn parse_size(s: &Value, shortest_ok: bool) -> Result<ResizeTo, String> {
     }
 }
 
-fn triple(v: &Value, key: &str, default: [f32; 3]) -> Result<[f32; 3], String> {
+fn triple(v: &Value, key: &str, default: [f64; 3]) -> Result<[f64; 3], String> {
     match v.get(key) {
         None | Some(Value::Null) => Ok(default),
         Some(Value::Array(a)) if a.len() == 3 => {
-            let mut out = [0f32; 3];
+            let mut out = [0f64; 3];
             for (o, x) in out.iter_mut().zip(a) {
                 *o = x
                     .as_f64()
-                    .ok_or_else(|| format!("`{key}` entry {x} is not a number"))?
-                    as f32;
+                    .ok_or_else(|| format!("`{key}` entry {x} is not a number"))?;
             }
             Ok(out)
         }
         Some(Value::Number(n)) => {
-            let x = n.as_f64().unwrap_or(f64::NAN) as f32;
+            let x = n.as_f64().unwrap_or(f64::NAN);
             Ok([x; 3])
         }
         Some(o) => Err(format!("`{key}` {o} is not three numbers")),
@@ -458,9 +431,9 @@ mod tests {
     #[test]
     fn reads_clip_configs_old_and_new() {
         let new = json!({"crop_size": {"height": 224, "width": 224}, "do_center_crop": true,
-            "do_normalize": true, "do_resize": true, "image_mean": CLIP_MEAN, "image_std": CLIP_STD,
-            "resample": 3, "size": {"shortest_edge": 224}, "rescale_factor": 0.00392156862745098,
-            "image_processor_type": "CLIPImageProcessor"});
+            "do_normalize": true, "do_resize": true, "image_mean": OPENAI_CLIP_MEAN,
+            "image_std": OPENAI_CLIP_STD, "resample": 3, "size": {"shortest_edge": 224},
+            "rescale_factor": 0.00392156862745098, "image_processor_type": "CLIPImageProcessor"});
         let p = ImageProcessor::from_preprocessor_config(&new).unwrap();
         assert_eq!(p, ImageProcessor::clip(224));
         // Old feature-extractor style: plain integers.
@@ -487,6 +460,24 @@ mod tests {
         assert_eq!(p.resample, Resample::Bilinear);
         assert_eq!(p.output_size(1280, 720), (320, 256));
         assert_eq!((p.mean, p.std), ([0.0; 3], [1.0; 3]));
+        assert!(!p.normalize);
+        // VideoLLaVA's processors: the same fields, whichever arithmetic.
+        let v = json!({"size": {"shortest_edge": 40}, "crop_size": 32,
+            "resample": 3, "image_mean": [0.5, 0.5, 0.5], "image_std": [0.5, 0.5, 0.5]});
+        let o = ImageProcessor::from_json(&v, Arith::Pil).unwrap();
+        assert_eq!(o.resize, Some(ResizeTo::ShortestEdge(40)));
+        assert_eq!(o.crop, Some((32, 32)));
+        assert_eq!(o.output_dims(64, 48), (32, 32));
+        assert_eq!(o.arith, Arith::Pil);
+        let no = ImageProcessor::from_json(
+            &json!({"do_center_crop": false, "do_resize": false}),
+            Arith::Pil,
+        )
+        .unwrap();
+        assert_eq!(no.output_dims(7, 5), (7, 5));
+        // A crop larger than the resize pads (transformers) unless the input is fixed-size.
+        let pad = json!({"crop_size": 300, "size": 224});
+        assert!(ImageProcessor::from_json(&pad, Arith::Pil).is_ok());
     }
 
     #[test]
@@ -495,6 +486,10 @@ mod tests {
             (json!({"resample": 1}), "resample"),
             (json!({"size": "big"}), "size"),
             (json!({"size": {"longest_edge": 3}}), "size"),
+            (
+                json!({"size": {"shortest_edge": 4, "longest_edge": 9}}),
+                "longest_edge",
+            ),
             (json!({"image_std": [1, 0, 1]}), "image_std"),
             (json!({"image_mean": [1, 2]}), "image_mean"),
             (json!({"crop_size": 300, "size": 224}), "crop"),
@@ -504,6 +499,10 @@ mod tests {
             let e = ImageProcessor::from_preprocessor_config(&v).unwrap_err();
             assert_eq!(e.kind(), "bad_config");
             assert!(e.to_string().contains(field), "{v}: {e}");
+            assert!(
+                e.to_string().contains("preprocessor_config.json"),
+                "{v}: {e}"
+            );
         }
     }
 
@@ -522,7 +521,8 @@ mod tests {
         )
         .unwrap();
         for c in 0..3 {
-            let want = ([50.0, 128.0, 250.0][c] / 255.0 - CLIP_MEAN[c]) / CLIP_STD[c];
+            let want = (([50.0, 128.0, 250.0][c] / 255.0 - OPENAI_CLIP_MEAN[c])
+                / OPENAI_CLIP_STD[c]) as f32;
             for v in &out[c * 256..(c + 1) * 256] {
                 assert!((v - want).abs() < 1e-6, "{v} vs {want}");
             }
@@ -548,7 +548,7 @@ mod tests {
             &mut out,
         )
         .unwrap();
-        let t = p.table();
+        let t = p.normalizer().table();
         for c in 0..3 {
             for y in 0..2 {
                 for x in 0..2 {
@@ -556,6 +556,27 @@ mod tests {
                     assert_eq!(out[c * 4 + y * 2 + x], t[c][src as usize]);
                 }
             }
+        }
+    }
+
+    #[test]
+    fn apply_equals_process_into() {
+        let rgb = frame(5, 96, 54);
+        let f = FrameRef {
+            width: 96,
+            height: 54,
+            rgb: &rgb,
+        };
+        for arith in [Arith::Torch, Arith::Pil] {
+            let p = ImageProcessor {
+                arith,
+                ..ImageProcessor::clip(32)
+            };
+            let (a, w, h) = p.apply(f).unwrap();
+            assert_eq!((w, h), (32, 32));
+            let mut b = vec![0f32; a.len()];
+            p.process_into(f, &mut b).unwrap();
+            assert_eq!(a, b);
         }
     }
 
