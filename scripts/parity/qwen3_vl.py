@@ -15,10 +15,12 @@ f32, from the files the Rust fixture writer produces (`TinyQwen3Vl`, seed 7):
                                                  cap), and frame sampling indices
 
 The Rust tests (crates/vlmfuse-models/tests/qwen3_vl_parity.rs) compare against these files; CI
-has no torch and never runs this script. Run it after changing the fixture or the cases:
+has no torch and never runs this script. Run it after changing the fixture or the cases, with a
+Python that has the packages below ($PYTHON, e.g. a reference venv outside the repository;
+default python3):
 
-    /work/venv-ref/bin/python scripts/parity/qwen3_vl.py            # builds the fixture with cargo
-    /work/venv-ref/bin/python scripts/parity/qwen3_vl.py --fixture DIR
+    "${PYTHON:-python3}" scripts/parity/qwen3_vl.py            # builds the fixture with cargo
+    "${PYTHON:-python3}" scripts/parity/qwen3_vl.py --fixture DIR
 
 Needs torch 2.15.0, transformers 5.23.0, torchvision 0.29.2 (video processor), numpy,
 safetensors.
