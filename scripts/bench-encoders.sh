@@ -7,7 +7,7 @@
 # Ratios are only meaningful within one run: the engines alternate in ROUNDS rounds (Rust, then
 # Python, again), and each median is over every timed run of that engine.
 #
-#   REF_PYTHON   a Python with torch, transformers, onnxruntime and pillow (a reference venv
+#   PYTHON       a Python with torch, transformers, onnxruntime and pillow (a reference venv
 #                outside the repository; default: python3)
 #   THREADS (2) FRAMES (8) REPS (10) ROUNDS (2) SHORT_SIDE (0: the clip's 720 rows)
 #   BENCH_DIR    where the clip, the frames and the JSON results go (default: a temporary dir)
@@ -17,7 +17,7 @@
 # into the asset cache).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-PY="${REF_PYTHON:-python3}"
+PY="${PYTHON:-python3}"
 THREADS="${THREADS:-2}"; FRAMES="${FRAMES:-8}"; REPS="${REPS:-10}"; ROUNDS="${ROUNDS:-2}"
 SHORT_SIDE="${SHORT_SIDE:-0}"
 OUT="${BENCH_DIR:-$(mktemp -d)}"

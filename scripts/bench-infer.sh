@@ -6,14 +6,14 @@
 # Prints each stage's median from the responses' `timings_ms`; the target is decode + embed +
 # label + fuse <= 600 ms.
 #
-#   REF_PYTHON (python3: needs torch + transformers only to write the bench model once)
+#   PYTHON (python3: needs torch + transformers only to write the bench model once)
 #   REQS (20) THREADS (2: embedder and labeler threads) DECODE_THREADS (1) PORT (18080)
 #   BENCH_DIR (a temporary dir)   CARGO_TARGET_DIR as usual   VLMFUSE_BIN (a built binary: no build)
 #
 # Not run in CI (the bench model needs torch).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-PY="${REF_PYTHON:-python3}"
+PY="${PYTHON:-python3}"
 REQS="${REQS:-20}"; THREADS="${THREADS:-2}"; DECODE_THREADS="${DECODE_THREADS:-1}"
 PORT="${PORT:-18080}"; FAKE_PORT=$((PORT + 1))
 OUT="${BENCH_DIR:-$(mktemp -d)}"; mkdir -p "$OUT"

@@ -7,10 +7,11 @@ Models: the tiny test fixture (8 frames of 64x64, 256 visual tokens) and a mid-s
 (text hidden 512, 8 layers; 16 px patches; 8 frames of 256x256, 256 visual tokens), both
 written by the `write_fixture` example.
 
-    /work/venv-ref/bin/python scripts/bench/qwen3_vl.py [--runs 5] [--new 32] [--json out.json]
+    "${PYTHON:-python3}" scripts/bench/qwen3_vl.py [--runs 5] [--new 32] [--json out.json]
 
-Builds `qwen3_vl_bench` and `write_fixture` in release under $CARGO_TARGET_DIR (default
-/work/target-release) unless --bin-dir points at existing binaries. Both engines use all cores
+($PYTHON: a Python with torch and transformers, e.g. a reference venv outside the repository;
+default python3.) Builds `qwen3_vl_bench` and `write_fixture` in release under $CARGO_TARGET_DIR
+(default: the repository's `target/`, as cargo's) unless --bin-dir points at existing binaries. Both engines use all cores
 (torch's default intra-op threads, candle's rayon pool) unless --threads says otherwise.
 """
 
@@ -135,7 +136,7 @@ def main():
     if a.threads:
         torch.set_num_threads(a.threads)
         os.environ["RAYON_NUM_THREADS"] = str(a.threads)
-    bin_dir = a.bin_dir or build(os.environ.get("CARGO_TARGET_DIR", "/work/target-release"))
+    bin_dir = a.bin_dir or build(os.environ.get("CARGO_TARGET_DIR") or os.path.join(ROOT, "target"))
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         for m in MODELS:

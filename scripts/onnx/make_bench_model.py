@@ -5,9 +5,10 @@ own initialisation, fixed seed) for the encoder benchmark, in the layout users h
     OUT/config.json  OUT/model.safetensors  OUT/preprocessor_config.json  OUT/onnx/vision_model.onnx
 
 OUT defaults to $VLMFUSE_ASSETS/bench/clip-vit-b32-random (outside the repository: about
-700 MB, never committed). Needs torch + transformers (the reference venv):
+700 MB, never committed). Needs torch + transformers; $PYTHON is such a Python (a reference venv
+outside the repository; default python3):
 
-    /work/venv-ref/bin/python scripts/onnx/make_bench_model.py [OUT]
+    "${PYTHON:-python3}" scripts/onnx/make_bench_model.py [OUT]
 
 Idempotent: an OUT that already holds all four files is left alone.
 """

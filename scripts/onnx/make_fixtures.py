@@ -1,10 +1,10 @@
 #!/usr/bin/env python3
 """Builds the ONNX test fixtures under tests/data/onnx/ and their expected outputs from torch.
 
-Run with the reference venv (torch + transformers, outside the repo; never in CI, which reads the
-committed files):
+Run with a Python that has torch + transformers ($PYTHON, e.g. a reference venv outside the repo;
+default python3; never in CI, which reads the committed files):
 
-    /work/venv-ref/bin/python scripts/onnx/make_fixtures.py [--minilm DIR]
+    "${PYTHON:-python3}" scripts/onnx/make_fixtures.py [--minilm DIR]
 
 Writes, with random weights from fixed seeds (a few hundred KB in all):
 

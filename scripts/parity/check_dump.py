@@ -11,10 +11,11 @@ isolates the model from preprocessing (the parity tests cover the processors), a
 Exit status 0 when the logits agree within --tol and the ids match, 1 otherwise.
 
     vlmfuse describe clip.mp4 --config vlmfuse.toml --reporter NAME --dump /tmp/d
-    /work/venv-ref/bin/python scripts/parity/check_dump.py /tmp/d [--weights DIR] [--tol 1e-4]
+    "${PYTHON:-python3}" scripts/parity/check_dump.py /tmp/d [--weights DIR] [--tol 1e-4]
 
-Needs torch, transformers (5.23 here), numpy; peft when the reporter has a LoRA adapter. Not run
-in CI (no torch there). The reporter must run in f32 for the 1e-4 tolerance to make sense.
+Needs torch, transformers (5.23 here), numpy; peft when the reporter has a LoRA adapter ($PYTHON:
+such a Python, e.g. a reference venv outside the repository; default python3). Not run in CI (no
+torch there). The reporter must run in f32 for the 1e-4 tolerance to make sense.
 """
 
 import argparse

@@ -15,11 +15,13 @@ f32, from the files the Rust fixture writer produces (`TinyQwen3Vl`, seed 7):
                                                  cap), and frame sampling indices
 
 The Rust tests (crates/vlmfuse-models/tests/qwen3_vl_parity.rs) compare against these files; CI
-has no torch and never runs this script. Run it after changing the fixture or the cases:
+has no torch and never runs this script. Run it after changing the fixture or the cases, with a
+Python that has the packages below ($PYTHON, e.g. a reference venv outside the repository;
+default python3):
 
-    /work/venv-ref/bin/python scripts/parity/qwen3_vl.py            # builds the fixture with cargo
-    /work/venv-ref/bin/python scripts/parity/qwen3_vl.py --fixture DIR
-    /work/venv-ref/bin/python scripts/parity/qwen3_vl.py --candle-transformers
+    "${PYTHON:-python3}" scripts/parity/qwen3_vl.py            # builds the fixture with cargo
+    "${PYTHON:-python3}" scripts/parity/qwen3_vl.py --fixture DIR
+    "${PYTHON:-python3}" scripts/parity/qwen3_vl.py --candle-transformers
 
 With --candle-transformers it then measures candle-transformers' own `qwen3_vl` against the same
 references (the cargo example `candle_transformers_qwen3_vl`, which needs no torch and can be

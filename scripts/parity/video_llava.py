@@ -2,10 +2,11 @@
 """Reference outputs of transformers' VideoLlavaForConditionalGeneration on the project's tiny
 VideoLLaVA fixture, for the Rust parity tests (crates/vlmfuse-models/tests/video_llava_parity.rs).
 
-Not run in CI (it needs torch). Run it from the repository root with the reference venv:
+Not run in CI (it needs torch). Run it from the repository root with a Python that has the
+packages below ($PYTHON, e.g. a reference venv outside the repository; default python3):
 
     cargo run -p vlmfuse-models --example video_llava_fixture -- /tmp/vl
-    /work/venv-ref/bin/python scripts/parity/video_llava.py /tmp/vl
+    "${PYTHON:-python3}" scripts/parity/video_llava.py /tmp/vl
 
 Needs torch 2.15.0, transformers 5.23.0, torchvision 0.29.2 and peft (for the LoRA case). Reads
 DIR/model (checkpoint), DIR/adapter (PEFT adapter), DIR/frames (raw RGB clips) that the Rust

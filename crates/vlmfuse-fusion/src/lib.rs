@@ -4,6 +4,7 @@
 
 pub mod adaptive;
 pub mod bank;
+pub mod bench;
 pub mod config;
 pub mod corr;
 pub mod curve;

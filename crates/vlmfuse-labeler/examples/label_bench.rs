@@ -20,8 +20,8 @@ use vlmfuse_labeler::{
     OnnxSentenceEncoder, Ontology,
 };
 use vlmfuse_ort::SessionOptions;
-use vlmfuse_testkit::assets::ensure_assets;
-use vlmfuse_testkit::labeler_eval::{
+use vlmfuse_testkit_models::assets::require_assets;
+use vlmfuse_testkit_models::labeler_eval::{
     default_dataset_path, eval_embedding_labeler, load_dataset, test_split, ROUND_ANSWERS,
 };
 
@@ -70,7 +70,7 @@ fn main() {
         "--threads",
         std::thread::available_parallelism().map_or(1, |n| n.get()),
     );
-    let a = ensure_assets().unwrap_or_else(|e| panic!("assets (scripts/fetch-assets.sh): {e}"));
+    let a = require_assets();
     let data = load_dataset(&default_dataset_path()).expect("labeler data set");
     let test: Vec<&str> = test_split(&data).iter().map(|e| e.text.as_str()).collect();
     let rounds: Vec<&[&str]> = test.chunks(ROUND_ANSWERS).collect();

@@ -11,7 +11,7 @@
 //! a warm-up), each engine measured in the same run.
 //!
 //! * `embedding`: the served default (rules + MiniLM paraphrases, ONNX Runtime encoder), built
-//!   by `vlmfuse_testkit::labeler_eval::eval_embedding_labeler`, which the service's test holds
+//!   by `vlmfuse_testkit_models::labeler_eval::eval_embedding_labeler`, which the service's test holds
 //!   the served labeler to;
 //! * `candle`: the same matcher on the candle encoder (`encoder = "candle"`);
 //! * `rules`: the rules alone (an ablation: what the embeddings add);
@@ -29,8 +29,8 @@ use vlmfuse_labeler::{
     BlockingLabeler, EmbeddingConfig, EmbeddingLabeler, GgufConfig, GgufLabeler, Labeler, Ontology,
     OpenAiConfig, OpenAiLabeler,
 };
-use vlmfuse_testkit::assets::{ensure_assets, AssetsUnavailable};
-use vlmfuse_testkit::labeler_eval::{
+use vlmfuse_testkit_models::assets::find_assets;
+use vlmfuse_testkit_models::labeler_eval::{
     default_dataset_path, eval_candle_labeler, eval_embedding_labeler, f1_scores, label_f1,
     load_dataset, per_label_f1, to_mask, Example, F1, ROUND_ANSWERS,
 };
@@ -134,14 +134,7 @@ fn main() -> anyhow::Result<()> {
     let gguf_test: usize =
         arg_value(&args, "--gguf-test").map_or(usize::MAX, |v| v.parse().unwrap());
 
-    let assets = match ensure_assets() {
-        Ok(a) => a,
-        Err(AssetsUnavailable::RegistryUnreachable(r)) => {
-            eprintln!("skipping evaluation: assets cannot be fetched: {r}");
-            return Ok(());
-        }
-        Err(e) => anyhow::bail!("{e}"),
-    };
+    let assets = find_assets()?;
     let ontology = Ontology::default_driving();
     let data = load_dataset(&default_dataset_path())?;
     let (train, test): (Vec<&Example>, Vec<&Example>) =

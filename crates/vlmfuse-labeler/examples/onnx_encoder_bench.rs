@@ -22,8 +22,8 @@ use vlmfuse_labeler::{
     OnnxSentenceEncoder, Ontology, SentenceEncoder,
 };
 use vlmfuse_ort::SessionOptions;
-use vlmfuse_testkit::assets::ensure_assets;
-use vlmfuse_testkit::labeler_eval::{default_dataset_path, load_dataset};
+use vlmfuse_testkit_models::assets::require_assets;
+use vlmfuse_testkit_models::labeler_eval::{default_dataset_path, load_dataset};
 
 fn arg(name: &str, default: usize) -> usize {
     let args: Vec<String> = std::env::args().collect();
@@ -139,7 +139,7 @@ impl CandleEncoder {
 fn main() {
     let threads = arg("--threads", 2);
     let reps = arg("--reps", 30);
-    let assets = ensure_assets().unwrap_or_else(|e| panic!("{e}"));
+    let assets = require_assets();
     let data = load_dataset(&default_dataset_path()).expect("labeler dataset");
     let answers: Vec<String> = data
         .iter()

@@ -6,7 +6,9 @@
 //! ```
 
 use vlmfuse_labeler::{rules, text, Ontology};
-use vlmfuse_testkit::labeler_eval::{default_dataset_path, f1_scores, load_dataset, to_mask};
+use vlmfuse_testkit_models::labeler_eval::{
+    default_dataset_path, f1_scores, load_dataset, to_mask,
+};
 
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();

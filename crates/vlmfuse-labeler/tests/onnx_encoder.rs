@@ -127,7 +127,7 @@ fn candle_embed(dir: &Path, texts: &[&str]) -> Vec<Vec<f32>> {
     mean.broadcast_div(&norm).unwrap().to_vec2().unwrap()
 }
 
-fn runtime() -> Option<vlmfuse_labeler::assets::AssetPaths> {
+fn runtime() -> vlmfuse_labeler::assets::AssetPaths {
     common::assets()
 }
 
@@ -145,10 +145,9 @@ fn check_against(enc: &OnnxSentenceEncoder, exp: &Expected, what: &str) {
 }
 
 #[test]
+#[ignore = "needs assets: scripts/fetch-assets.sh"]
 fn tiny_bert_export_matches_torch_and_candle() {
-    if runtime().is_none() {
-        return;
-    }
+    runtime();
     let exp = expected("tiny-bert");
     let dir = data("tiny-bert");
     let enc = OnnxSentenceEncoder::load(&OnnxEncoderConfig::new(&dir)).unwrap();
@@ -169,12 +168,11 @@ fn tiny_bert_export_matches_torch_and_candle() {
 }
 
 #[test]
+#[ignore = "needs assets: scripts/fetch-assets.sh"]
 fn the_safetensors_graph_matches_torch() {
     // scripts/onnx/bert_graph.py's graph (the one the real MiniLM runs through) on the tiny
     // weights: external data read straight from model.safetensors.
-    if runtime().is_none() {
-        return;
-    }
+    runtime();
     let exp = expected("tiny-bert");
     let cfg = OnnxEncoderConfig {
         model_file: Some("graph.onnx".into()),
@@ -185,10 +183,9 @@ fn the_safetensors_graph_matches_torch() {
 }
 
 #[test]
+#[ignore = "needs assets: scripts/fetch-assets.sh"]
 fn batching_does_not_leak_padding_and_threads_change_nothing() {
-    if runtime().is_none() {
-        return;
-    }
+    runtime();
     let exp = expected("tiny-bert");
     let texts: Vec<&str> = exp.texts.iter().map(String::as_str).collect();
     let enc = OnnxSentenceEncoder::load(&OnnxEncoderConfig {
@@ -217,8 +214,9 @@ fn batching_does_not_leak_padding_and_threads_change_nothing() {
 }
 
 #[test]
+#[ignore = "needs assets: scripts/fetch-assets.sh"]
 fn real_minilm_matches_torch_and_candle() {
-    let Some(assets) = runtime() else { return };
+    let assets = runtime();
     let exp = expected("all-minilm-l6-v2");
     let enc = OnnxSentenceEncoder::load(&OnnxEncoderConfig::new(&assets.minilm_onnx_dir)).unwrap();
     assert_eq!(enc.dim(), 384);
@@ -232,10 +230,9 @@ fn real_minilm_matches_torch_and_candle() {
 }
 
 #[test]
+#[ignore = "needs assets: scripts/fetch-assets.sh"]
 fn wrong_models_are_clear_errors() {
-    if runtime().is_none() {
-        return;
-    }
+    runtime();
     // An image encoder where a sentence encoder belongs.
     let dir = tempfile::tempdir().unwrap();
     std::fs::copy(

@@ -20,7 +20,7 @@ use vlmfuse_models::models::qwen3_vl::{
     argmax_rows, Cache, LoadOptions, Qwen3Vl, Qwen3VlProcessor,
 };
 use vlmfuse_models::{FrameRef, WeightSource};
-use vlmfuse_testkit::fixtures::qwen3_vl::parity_frame;
+use vlmfuse_testkit_models::fixtures::qwen3_vl::parity_frame;
 
 struct Args {
     model: PathBuf,

@@ -19,7 +19,7 @@ use std::time::Instant;
 
 use vlmfuse_models::models::video_llava::{LoadOptions, VideoLlava, VideoLlavaProcessor};
 use vlmfuse_models::{FrameRef, WeightSource};
-use vlmfuse_testkit::fixtures::video_llava::PARITY_CLIPS;
+use vlmfuse_testkit_models::fixtures::video_llava::PARITY_CLIPS;
 
 struct Args {
     dir: PathBuf,

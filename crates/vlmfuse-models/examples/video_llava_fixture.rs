@@ -11,8 +11,8 @@
 use std::path::PathBuf;
 
 use vlmfuse_models::models::video_llava::transformers5_name;
-use vlmfuse_testkit::fixtures::video_llava::write_parity_frames;
-use vlmfuse_testkit::fixtures::TinyVideoLlava;
+use vlmfuse_testkit_models::fixtures::video_llava::write_parity_frames;
+use vlmfuse_testkit_models::fixtures::TinyVideoLlava;
 
 /// Seeds shared with the parity tests (tests/video_llava_parity.rs).
 const MODEL_SEED: u64 = 7;

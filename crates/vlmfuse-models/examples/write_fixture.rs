@@ -12,7 +12,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use vlmfuse_testkit::fixtures::TinyQwen3Vl;
+use vlmfuse_testkit_models::fixtures::TinyQwen3Vl;
 
 fn usage() -> ExitCode {
     eprintln!("usage: write_fixture qwen3_vl DIR [--size tiny|mid] [--seed N]");

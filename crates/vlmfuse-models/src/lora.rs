@@ -190,8 +190,8 @@ pub fn load_adapter(
 mod tests {
     use super::*;
     use candle_core::Device;
-    use vlmfuse_testkit::fixtures::RandomTensor;
     use vlmfuse_testkit::rng::SplitMix64 as Rng;
+    use vlmfuse_testkit_models::fixtures::RandomTensor;
 
     fn t(v: &[f32], shape: (usize, usize)) -> Tensor {
         Tensor::from_slice(v, shape, &Device::Cpu).unwrap()

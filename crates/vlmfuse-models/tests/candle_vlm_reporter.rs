@@ -18,9 +18,9 @@ use vlmfuse_models::{
     Frame, LocalReporter, ModelError, PoolConfig, Reporter, ReporterFailure, RoundReporter,
     WeightSource,
 };
-use vlmfuse_testkit::fixtures::qwen3_vl::parity_frame;
-use vlmfuse_testkit::fixtures::video_llava::{SyntheticClip, PARITY_CLIPS};
-use vlmfuse_testkit::fixtures::{write_hf_cache_entry, TinyQwen3Vl, TinyVideoLlava};
+use vlmfuse_testkit_models::fixtures::qwen3_vl::parity_frame;
+use vlmfuse_testkit_models::fixtures::video_llava::{SyntheticClip, PARITY_CLIPS};
+use vlmfuse_testkit_models::fixtures::{write_hf_cache_entry, TinyQwen3Vl, TinyVideoLlava};
 
 const PROMPT: &str = "describe the dashcam clip";
 /// The seeds the parity references were made from (scripts/parity/*.py).

@@ -2,7 +2,7 @@
 
 use candle_core::Device;
 use vlmfuse_models::{ClipEmbedder, ContextEmbedder, FrameRef, WeightSource};
-use vlmfuse_testkit::fixtures::{write_hf_cache_entry, TinyClip};
+use vlmfuse_testkit_models::fixtures::{write_hf_cache_entry, TinyClip};
 
 fn frame(seed: u32, w: u32, h: u32) -> Vec<u8> {
     (0..w * h * 3)

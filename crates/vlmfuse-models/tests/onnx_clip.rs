@@ -10,8 +10,8 @@ use vlmfuse_models::{
     ClipEmbedder, ContextEmbedder, FrameRef, OnnxClipConfig, OnnxClipEmbedder, WeightSource,
 };
 use vlmfuse_ort::SessionOptions;
-use vlmfuse_testkit::assets::{ensure_assets, AssetsUnavailable};
-use vlmfuse_testkit::fixtures::write_hf_cache_entry;
+use vlmfuse_testkit_models::assets::require_onnxruntime;
+use vlmfuse_testkit_models::fixtures::write_hf_cache_entry;
 
 fn data(rel: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -19,17 +19,10 @@ fn data(rel: &str) -> PathBuf {
         .join(rel)
 }
 
-/// ONNX Runtime's library from the asset cache (fetched when missing). `false`, after saying why,
-/// only when the registry cannot be reached.
-fn runtime() -> bool {
-    match ensure_assets() {
-        Ok(_) => true,
-        Err(AssetsUnavailable::RegistryUnreachable(reason)) => {
-            eprintln!("SKIPPED: ONNX Runtime unavailable, registry unreachable: {reason}");
-            false
-        }
-        Err(e) => panic!("{e}"),
-    }
+/// ONNX Runtime's library from the asset cache; panics, naming the fetch script, when missing
+/// (the tests that call it are `#[ignore]`d unless the test command fetched the assets).
+fn runtime() {
+    require_onnxruntime();
 }
 
 fn frame(seed: u32, w: u32, h: u32) -> Vec<u8> {
@@ -147,10 +140,9 @@ fn preprocessing_equals_clip_image_processor() {
 }
 
 #[test]
+#[ignore = "needs assets: scripts/fetch-assets.sh"]
 fn vision_export_matches_torch() {
-    if !runtime() {
-        return;
-    }
+    runtime();
     let exp = Expected::load("tiny-clip");
     let emb = load(&data("tiny-clip"));
     assert_eq!(emb.dim(), 16);
@@ -183,10 +175,9 @@ fn vision_export_matches_torch() {
 }
 
 #[test]
+#[ignore = "needs assets: scripts/fetch-assets.sh"]
 fn same_weights_as_candle_give_the_same_embeddings() {
-    if !runtime() {
-        return;
-    }
+    runtime();
     let exp = Expected::load("tiny-clip");
     let dir = data("tiny-clip");
     let onnx = load(&dir);
@@ -225,10 +216,9 @@ fn same_weights_as_candle_give_the_same_embeddings() {
 }
 
 #[test]
+#[ignore = "needs assets: scripts/fetch-assets.sh"]
 fn whole_clipmodel_export_runs_with_constant_text_inputs() {
-    if !runtime() {
-        return;
-    }
+    runtime();
     let exp = Expected::load("tiny-clip-full");
     let emb = load(&data("tiny-clip-full"));
     assert!(emb.model_path().ends_with("model.onnx"));
@@ -252,10 +242,9 @@ fn copy_dir(from: &Path, to: &Path, files: &[(&str, &str)]) {
 }
 
 #[test]
+#[ignore = "needs assets: scripts/fetch-assets.sh"]
 fn layouts_named_files_hub_cache_and_thread_counts() {
-    if !runtime() {
-        return;
-    }
+    runtime();
     let src = data("tiny-clip");
     let exp = Expected::load("tiny-clip");
     let want = load(&src).embed(&exp.refs()).unwrap();
@@ -326,10 +315,9 @@ fn layouts_named_files_hub_cache_and_thread_counts() {
 }
 
 #[test]
+#[ignore = "needs assets: scripts/fetch-assets.sh"]
 fn bad_models_and_inputs_are_clear_errors() {
-    if !runtime() {
-        return;
-    }
+    runtime();
     let src = data("tiny-clip");
 
     // Nothing to load: every place looked at is named.

@@ -15,8 +15,8 @@ use vlmfuse_models::models::qwen3_vl::{
     VideoProcessorConfig,
 };
 use vlmfuse_models::{FrameRef, ModelError, WeightSource};
-use vlmfuse_testkit::fixtures::qwen3_vl::parity_frame;
-use vlmfuse_testkit::fixtures::TinyQwen3Vl;
+use vlmfuse_testkit_models::fixtures::qwen3_vl::parity_frame;
+use vlmfuse_testkit_models::fixtures::TinyQwen3Vl;
 
 const LOGIT_TOL: f32 = 1e-4;
 

@@ -12,8 +12,8 @@ use vlmfuse_models::models::video_llava::{
     LoadOptions, ModelInputs, VideoLlava, VideoLlavaConfig, VideoLlavaProcessor,
 };
 use vlmfuse_models::{Frame, FrameRef, ModelError, WeightSource};
-use vlmfuse_testkit::fixtures::video_llava::{SyntheticClip, PARITY_CLIPS};
-use vlmfuse_testkit::fixtures::TinyVideoLlava;
+use vlmfuse_testkit_models::fixtures::video_llava::{SyntheticClip, PARITY_CLIPS};
+use vlmfuse_testkit_models::fixtures::TinyVideoLlava;
 
 const MODEL_SEED: u64 = 7;
 const ADAPTER_SEED: u64 = 21;

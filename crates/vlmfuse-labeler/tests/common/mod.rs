@@ -1,11 +1,11 @@
 #![allow(dead_code)]
-//! Shared test helpers: asset lookup with an explicit, never-silent skip.
+//! Shared test helpers: the asset lookup of the tests marked
+//! `#[ignore = "needs assets: scripts/fetch-assets.sh"]`.
 
-use vlmfuse_testkit::assets::AssetPaths;
+use vlmfuse_testkit_models::assets::AssetPaths;
 
-/// The fetched assets, running the fetch script when they are missing. Returns `None` (after
-/// saying why on stderr) only when the registry cannot be reached; any other problem fails the
-/// test.
-pub fn assets() -> Option<AssetPaths> {
-    vlmfuse_testkit::assets::assets_or_skip("this test")
+/// The fetched assets; panics, naming the fetch script, when they are missing (the test command
+/// fetches them, then runs the ignored tests with `--include-ignored`).
+pub fn assets() -> AssetPaths {
+    vlmfuse_testkit_models::assets::require_assets()
 }

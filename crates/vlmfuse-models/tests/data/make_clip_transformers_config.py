@@ -1,11 +1,12 @@
 """Writes clip_transformers_config.json: the config.json that transformers itself writes for a
-CLIPModel shaped like vlmfuse_models::fixtures::TinyClip (projection 16).
+CLIPModel shaped like vlmfuse_testkit_models::fixtures::TinyClip (projection 16).
 
 transformers puts CLIPVisionConfig's own default `projection_dim: 512` inside `vision_config`
 next to the real top-level `projection_dim`, and CLIPModel sizes `visual_projection` from the
 top-level one; the Rust test loads TinyClip weights with this file to check we do the same.
 
-Run with the reference venv: /work/venv-ref/bin/python make_clip_transformers_config.py
+Run with a Python that has transformers ($PYTHON, e.g. a reference venv outside the repository;
+default python3): "${PYTHON:-python3}" make_clip_transformers_config.py
 """
 
 import json

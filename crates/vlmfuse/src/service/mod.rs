@@ -42,7 +42,10 @@ use vlmfuse_store::{Identity, Store};
 use writer::{Cmd, Shared};
 
 /// Hooks that only tests set: they let a test make a request slow deterministically (to fill the
-/// concurrency limit, to pass a timeout) without a knob in the production configuration.
+/// concurrency limit, to pass a timeout) without a knob in the production configuration. Behind
+/// the `test-hooks` feature, which only this crate's tests enable; without it the hooks are a
+/// zero-sized type whose delays are always zero, and [`Service`] has no way to set them.
+#[cfg(feature = "test-hooks")]
 #[derive(Default)]
 pub struct TestHooks {
     fuse_delay_ms: AtomicU64,
@@ -50,6 +53,7 @@ pub struct TestHooks {
     after_queue_ms: AtomicU64,
 }
 
+#[cfg(feature = "test-hooks")]
 impl TestHooks {
     /// Every `/v1/fuse` sleeps this long before it starts.
     pub fn set_fuse_delay(&self, d: Duration) {
@@ -80,6 +84,26 @@ impl TestHooks {
 
     fn fuse_hold(&self) -> Duration {
         Duration::from_millis(self.fuse_hold_ms.load(Ordering::Relaxed))
+    }
+}
+
+/// Without `test-hooks`: no state, every delay zero (the checks compile away).
+#[cfg(not(feature = "test-hooks"))]
+#[derive(Default)]
+struct TestHooks;
+
+#[cfg(not(feature = "test-hooks"))]
+impl TestHooks {
+    fn fuse_delay(&self) -> Duration {
+        Duration::ZERO
+    }
+
+    fn after_queue_delay(&self) -> Duration {
+        Duration::ZERO
+    }
+
+    fn fuse_hold(&self) -> Duration {
+        Duration::ZERO
     }
 }
 
@@ -239,7 +263,8 @@ impl Service {
         &self.metrics
     }
 
-    /// Test-only hooks (see [`TestHooks`]).
+    /// Test-only hooks (see [`TestHooks`]; feature `test-hooks`).
+    #[cfg(feature = "test-hooks")]
     pub fn test_hooks(&self) -> &TestHooks {
         &self.hooks
     }

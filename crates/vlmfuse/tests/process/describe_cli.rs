@@ -14,8 +14,8 @@ use vlmfuse_models::models::video_llava::{
 };
 use vlmfuse_models::WeightSource;
 use vlmfuse_testkit::clips::h264_clip;
-use vlmfuse_testkit::fixtures::{TinyQwen3Vl, TinyVideoLlava};
 use vlmfuse_testkit::server::{FakeOpenAi, LABELER_LABELS};
+use vlmfuse_testkit_models::fixtures::{TinyQwen3Vl, TinyVideoLlava};
 
 const MAX_NEW: usize = 6;
 

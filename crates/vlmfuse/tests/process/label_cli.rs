@@ -6,15 +6,15 @@ use serde_json::Value;
 use std::io::Write;
 use std::process::{Command, Stdio};
 
-fn have_assets() -> bool {
-    vlmfuse_testkit::assets::assets_or_skip("label_cli").is_some()
+/// The served labeler's model files; panics, naming the fetch script, when they are missing.
+fn have_assets() {
+    vlmfuse_testkit_models::assets::require_assets();
 }
 
 #[test]
+#[ignore = "needs assets: scripts/fetch-assets.sh"]
 fn label_reads_stdin_and_jsonl_and_shows_the_evidence() {
-    if !have_assets() {
-        return;
-    }
+    have_assets();
     // One answer from standard input, readable.
     let mut child = Command::new(BIN)
         .args(["label", "-", "--quiet"])

@@ -11,7 +11,7 @@ fn a_failing_embedder_is_one_line_in_readyz_even_with_backtraces_on() {
     let fake = vlmfuse_testkit::server::FakeOpenAi::start();
     // The tiny CLIP with its config's MLP width changed: candle's shape-mismatch error, which
     // carries a backtrace when RUST_BACKTRACE is set.
-    let toml = vlmfuse_testkit::fixtures::clip_embedder_toml(tmp.path());
+    let toml = vlmfuse_testkit_models::fixtures::clip_embedder_toml(tmp.path());
     let config = tmp.path().join("clip").join("config.json");
     let mut c: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&config).unwrap()).unwrap();

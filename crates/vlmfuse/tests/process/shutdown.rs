@@ -5,9 +5,9 @@
 use crate::support::*;
 use std::time::Duration;
 use vlmfuse_testkit::clips::h264_clip;
-use vlmfuse_testkit::fixtures::clip_embedder_toml;
 use vlmfuse_testkit::multipart::{content_type, multipart};
 use vlmfuse_testkit::server::FakeOpenAi;
+use vlmfuse_testkit_models::fixtures::clip_embedder_toml;
 
 #[test]
 fn sigterm_lets_the_request_in_flight_finish() {

@@ -14,9 +14,9 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use vlmfuse_testkit::clips::h264_clip;
-use vlmfuse_testkit::fixtures::clip_embedder_toml;
 use vlmfuse_testkit::multipart::{content_type, multipart};
 use vlmfuse_testkit::server::FakeOpenAi;
+use vlmfuse_testkit_models::fixtures::clip_embedder_toml;
 
 const CLIENTS: usize = 64;
 

@@ -8,9 +8,9 @@ use axum::http::Request;
 use serde_json::Value;
 use std::time::{Duration, Instant};
 use tower::ServiceExt;
-use vlmfuse_testkit::fixtures::clip_embedder_toml;
 use vlmfuse_testkit::multipart::{content_type, multipart, BOUNDARY};
 use vlmfuse_testkit::server::FakeOpenAi;
+use vlmfuse_testkit_models::fixtures::clip_embedder_toml;
 
 fn infer_config(dir: &std::path::Path, fake: &FakeOpenAi) -> String {
     let mut c = String::from(

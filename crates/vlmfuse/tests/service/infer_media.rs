@@ -5,9 +5,9 @@
 use crate::support::TestApp;
 use serde_json::{json, Value};
 use vlmfuse_testkit::clips::{ffmpeg_to, h264_clip};
-use vlmfuse_testkit::fixtures::clip_embedder_toml;
 use vlmfuse_testkit::multipart::multipart;
 use vlmfuse_testkit::server::{FakeOpenAi, DRIVING_TEXT, LABELER_LABELS, LABELER_MODEL};
+use vlmfuse_testkit_models::fixtures::clip_embedder_toml;
 
 fn config(dir: &std::path::Path, fake: &FakeOpenAi, embedder: bool) -> String {
     let mut c = String::from(

@@ -6,11 +6,11 @@
 use crate::support::TestApp;
 use serde_json::json;
 use vlmfuse_testkit::clips::h264_clip;
-use vlmfuse_testkit::fixtures::{
-    clip_embedder_toml, qwen_reporter_toml, video_llava_reporter_toml,
-};
 use vlmfuse_testkit::multipart::multipart;
 use vlmfuse_testkit::server::{FakeOpenAi, DRIVING_TEXT, LABELER_LABELS, LABELER_MODEL};
+use vlmfuse_testkit_models::fixtures::{
+    clip_embedder_toml, qwen_reporter_toml, video_llava_reporter_toml,
+};
 
 const REPORTERS: &str =
     "reporters = [\"vlaad\", \"videollama2\", \"videollava\"]\n\n[media]\nframes = 4\n\n";
@@ -131,17 +131,11 @@ async fn when_every_reporter_fails_nothing_is_stored_and_the_failures_are_listed
 }
 
 /// The offline default labeler (all-MiniLM-L6-v2 from PyPI via scripts/fetch-assets.sh) in the
-/// live pipeline. Skipped, with the reason printed, only when the registry cannot be reached.
+/// live pipeline.
 #[tokio::test(flavor = "multi_thread")]
+#[ignore = "needs assets: scripts/fetch-assets.sh"]
 async fn the_embedding_labeler_labels_reporter_text_in_the_pipeline() {
-    let assets = match vlmfuse_testkit::assets::ensure_assets() {
-        Ok(a) => a,
-        Err(vlmfuse_testkit::assets::AssetsUnavailable::RegistryUnreachable(why)) => {
-            eprintln!("SKIPPED the_embedding_labeler_labels_reporter_text_in_the_pipeline: {why}");
-            return;
-        }
-        Err(e) => panic!("{e}"),
-    };
+    let assets = vlmfuse_testkit_models::assets::require_assets();
     let tmp = tempfile::tempdir().unwrap();
     let fake = FakeOpenAi::start();
     let mut cfg = String::from("reporters = [\"videollama2\"]\n\n[media]\nframes = 2\n\n");
@@ -217,8 +211,9 @@ async fn a_reporter_that_fails_to_load_is_listed_by_readyz_and_left_out_of_round
 /// `[embedder] backend = "onnx"`: the clip's context comes from ONNX Runtime (the tiny CLIP
 /// vision export under tests/data/onnx), and /v1/infer fuses it like the candle embedder's.
 #[tokio::test(flavor = "multi_thread")]
+#[ignore = "needs assets: scripts/fetch-assets.sh"]
 async fn the_onnx_embedder_serves_infer() {
-    let assets = vlmfuse_testkit::assets::ensure_assets().expect("assets (libonnxruntime)");
+    let onnxruntime = vlmfuse_testkit_models::assets::require_onnxruntime();
     let tmp = tempfile::tempdir().unwrap();
     let fake = FakeOpenAi::start();
     let model =
@@ -228,7 +223,7 @@ async fn the_onnx_embedder_serves_infer() {
     cfg += &format!(
         "[embedder]\nweights = {{ path = {model:?} }}\nbackend = \"onnx\"\nthreads = 1\n\
          onnx_library = {:?}\n\n",
-        assets.onnxruntime
+        onnxruntime
     );
     cfg += &fake.reporter_toml("videollama2", "video_url");
     cfg += &fake.reporter_toml("videollava", "frames");

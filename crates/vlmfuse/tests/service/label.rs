@@ -4,17 +4,18 @@
 use crate::support::TestApp;
 use serde_json::{json, Value};
 use vlmfuse_labeler::LabelerOutput;
-use vlmfuse_testkit::assets::{assets_or_skip, AssetPaths};
-use vlmfuse_testkit::labeler_eval::{
+use vlmfuse_testkit::server::{FakeOpenAi, LABELER_LABELS, LABELER_MODEL};
+use vlmfuse_testkit_models::assets::{require_assets, AssetPaths};
+use vlmfuse_testkit_models::labeler_eval::{
     default_dataset_path, eval_embedding_labeler, label_in_rounds, load_dataset, test_split,
     ROUND_ANSWERS,
 };
-use vlmfuse_testkit::server::{FakeOpenAi, LABELER_LABELS, LABELER_MODEL};
 
 const SHIPPED: &str = include_str!("../../../../config/default.toml");
 
-fn assets(test: &str) -> Option<AssetPaths> {
-    assets_or_skip(test)
+/// The fetched assets; panics, naming the fetch script, when they are missing.
+fn assets() -> AssetPaths {
+    require_assets()
 }
 
 /// The shipped configuration with a clip pipeline (one remote reporter), so that the labeler is
@@ -26,10 +27,9 @@ fn shipped_with_reporter(fake: &FakeOpenAi) -> String {
 /// The labeler `config/default.toml` serves gives, answer for answer, the labels and evidence
 /// that `labeler_eval` scores on the held-out test split, labelled in rounds as both label them.
 #[tokio::test(flavor = "multi_thread")]
+#[ignore = "needs assets: scripts/fetch-assets.sh"]
 async fn the_served_labeler_is_the_evaluated_one() {
-    let Some(a) = assets("the_served_labeler_is_the_evaluated_one") else {
-        return;
-    };
+    let a = assets();
     let data = load_dataset(&default_dataset_path()).unwrap();
     let test = test_split(&data);
     assert!(test.len() >= 250, "{} test answers", test.len());
@@ -131,10 +131,9 @@ async fn configured_descriptions_reach_the_labeler_loaded_on_first_use() {
 
 /// One text or a list; labels with evidence, discounted mentions shown.
 #[tokio::test(flavor = "multi_thread")]
+#[ignore = "needs assets: scripts/fetch-assets.sh"]
 async fn label_route_returns_labels_with_evidence() {
-    let Some(_) = assets("label_route_returns_labels_with_evidence") else {
-        return;
-    };
+    assets();
     let tmp = tempfile::tempdir().unwrap();
     let fake = FakeOpenAi::start();
     let srv = TestApp::from_toml(tmp.path(), &shipped_with_reporter(&fake)).await;
