@@ -4,8 +4,8 @@
 //! matcher, interleaved round by round so that both see the same machine load.
 //!
 //! ```text
-//! CARGO_TARGET_DIR=/work/target-release cargo build --release -p vlmfuse-labeler --example label_bench
-//! /work/target-release/release/examples/label_bench [--passes N] [--threads N]
+//! cargo build --release -p vlmfuse-labeler --example label_bench
+//! ${CARGO_TARGET_DIR:-target}/release/examples/label_bench [--passes N] [--threads N]
 //! ```
 //! Reported, in one run: per engine the median and p95 of the batched call (and its CPU time,
 //! all threads, which a loaded machine inflates less than wall time), and the same

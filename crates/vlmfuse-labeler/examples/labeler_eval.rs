@@ -2,7 +2,7 @@
 //! per-label F1.
 //!
 //! ```text
-//! CARGO_TARGET_DIR=/work/target-release cargo run --release -p vlmfuse-labeler \
+//! cargo run --release -p vlmfuse-labeler \
 //!     --example labeler_eval -- [--tune] [--only embedding,onnx,rules,remote,gguf]
 //!     [--gguf PATH] [--gguf-test N] [--threads N] [--json FILE]
 //! ```

@@ -3,7 +3,7 @@
 //! in one batch, as the labeler encodes a round, on the real all-MiniLM-L6-v2.
 //!
 //! ```sh
-//! RAYON_NUM_THREADS=2 CARGO_TARGET_DIR=/work/target-release cargo run --release \
+//! RAYON_NUM_THREADS=2 cargo run --release \
 //!     -p vlmfuse-labeler --example onnx_encoder_bench -- --threads 2 --reps 30
 //! ```
 //!

@@ -6,7 +6,7 @@
 //! `scripts/onnx/bench_reference.py`) and prints the ratios; on its own:
 //!
 //! ```sh
-//! CARGO_TARGET_DIR=/work/target-release cargo run --release -p vlmfuse-models \
+//! cargo run --release -p vlmfuse-models \
 //!     --example onnx_embed_bench -- --model DIR --clip clip.mp4 --threads 2 --out ort.json
 //! ```
 //!

@@ -3,8 +3,8 @@
 //! same run and prints the ratios). Build it in release:
 //!
 //! ```sh
-//! CARGO_TARGET_DIR=/work/target-release cargo build --release -p vlmfuse-models --example qwen3_vl_bench
-//! /work/target-release/release/examples/qwen3_vl_bench MODEL_DIR --frames 8 --size 64x64 --new 32
+//! cargo build --release -p vlmfuse-models --example qwen3_vl_bench
+//! ${CARGO_TARGET_DIR:-target}/release/examples/qwen3_vl_bench MODEL_DIR --frames 8 --size 64x64 --new 32
 //! ```
 //!
 //! Frames are the parity tests' synthetic clip. Prints one JSON object: medians over `--runs`

@@ -4,9 +4,9 @@
 //! ```sh
 //! cargo run --release -p vlmfuse-models --example video_llava_fixture -- /tmp/vl          # tiny
 //! cargo run --release -p vlmfuse-models --example video_llava_fixture -- /tmp/vlm --mid   # mid
-//! CARGO_TARGET_DIR=/work/target-release cargo build --release -p vlmfuse-models --example video_llava_bench
-//! /work/target-release/release/examples/video_llava_bench /tmp/vlm \
-//!     --python /work/venv-ref/bin/python [--new-tokens 32] [--repeats 3] [--threads N]
+//! cargo build --release -p vlmfuse-models --example video_llava_bench
+//! ${CARGO_TARGET_DIR:-target}/release/examples/video_llava_bench /tmp/vlm \
+//!     --python "$PYTHON" [--new-tokens 32] [--repeats 3] [--threads N]
 //! ```
 //! Input: the fixture's `landscape` clip (8 frames) with the "describe" prompt. TTFT is from
 //! decoded frames to the first token (preprocessing, vision tower, projector, prefill); decode
