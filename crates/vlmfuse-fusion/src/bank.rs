@@ -5,11 +5,10 @@
 //! moves a cosine by about 1e-7. Entries are laid out flat (structure of arrays) so the scan over
 //! the bank is one pass over contiguous memory.
 
-use serde::{Deserialize, Serialize};
 use std::cmp::Ordering;
 use std::collections::BinaryHeap;
 
-#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default)]
 pub struct Bank {
     n: usize,
     l: usize,
@@ -149,11 +148,6 @@ impl Bank {
 
     pub fn is_empty(&self) -> bool {
         self.seqs.is_empty()
-    }
-
-    /// Context dimension, 0 while the bank is empty and no dimension was fixed.
-    pub fn dim(&self) -> usize {
-        self.dim
     }
 
     pub fn set_dim(&mut self, dim: usize) {
@@ -354,6 +348,23 @@ impl Bank {
             return Vec::new();
         }
         self.select(sims.iter().copied().enumerate(), m)
+    }
+
+    /// Like [`Bank::top`], with the similarities indexed by each entry's sequence number
+    /// instead of its position: `sims[seq]` for every `seq` the bank holds (a batched GEMM's row
+    /// over every earlier round, whichever of them the bank kept).
+    pub fn top_by_seq(&self, sims: &[f64], m: usize) -> Vec<Neighbour> {
+        let m = m.min(self.len());
+        if m == 0 {
+            return Vec::new();
+        }
+        self.select(
+            self.seqs
+                .iter()
+                .enumerate()
+                .map(|(pos, &s)| (pos, sims[s as usize])),
+            m,
+        )
     }
 }
 

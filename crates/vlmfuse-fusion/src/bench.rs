@@ -342,7 +342,8 @@ pub fn knn(dim: usize, reporters: usize) -> Result<KnnTimes, FusionError> {
             batch_knn: batch,
         };
         let start = Instant::now();
-        let (_, outs) = replay(engine.clone(), &rounds, &opts, &mut |_| {})?;
+        let (_, outs) = replay(engine.clone(), &rounds, &opts, &mut |_| {})
+            .map_err(|e| FusionError::Config(e.to_string()))?;
         std::hint::black_box(outs);
         *slot = start.elapsed().as_secs_f64();
     }

@@ -1,7 +1,7 @@
 //! Every number SPEC.md names is a field here rather than a constant in the code, so that the
 //! service, `eval` and the tests all read the same defaults and a deployment can change them.
 
-use crate::adaptive::AdaptiveConfig;
+use crate::method::adaptive::AdaptiveConfig;
 use serde::{Deserialize, Serialize};
 
 /// Which fusion method the engine runs. `paper` is SPEC.md to the letter; `adaptive` is the

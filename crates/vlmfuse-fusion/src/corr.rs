@@ -4,10 +4,9 @@
 //! present, plus the running 2x2 counts of `(e_i, e_j)` per label, so reading `rho` is O(1) and
 //! advancing the window is O(L) per pair. Counts are integers, so the window never drifts.
 
-use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 
-#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default)]
 struct PairWindow {
     /// One code per label per round: `e_i + 2 * e_j`.
     rounds: VecDeque<Vec<u8>>,
@@ -15,7 +14,7 @@ struct PairWindow {
     counts: Vec<[u32; 4]>,
 }
 
-#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default)]
 pub struct CorrWindow {
     n: usize,
     l: usize,

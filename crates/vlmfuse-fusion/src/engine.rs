@@ -1,13 +1,17 @@
-//! The repeated game's state and its two moves: `infer` (read-only) and `credit` + `apply`
-//! (feedback). Splitting feedback into a pure `credit` and a mutating `apply` lets the service
-//! compute and persist an outcome before it touches the in-memory state, and lets `eval` replay
-//! the exact same steps.
+//! The repeated game's state and its moves: `infer` (read-only), `observe` (a stored round) and
+//! `credit` + `apply` (feedback). Splitting feedback into a pure `credit` and a mutating `apply`
+//! lets the service compute and persist an outcome before it touches the in-memory state, and
+//! lets a replay ([`crate::replay`]) take the exact same steps.
+//!
+//! The engine keeps what every method shares: the ontology, the reporters, their reputations and
+//! statistics, the labelled-round counter and the context dimension. Everything else belongs to
+//! the method it runs (`crate::method`), which it calls with a read-only view of that state.
 
-use crate::adaptive::{Adaptive, Scan};
-use crate::bank::{Bank, Neighbour};
+use crate::bank::Bank;
 use crate::config::{FusionConfig, Method};
-use crate::corr::CorrWindow;
 use crate::error::FusionError;
+use crate::method::adaptive::Scan;
+use crate::method::{Ctx, MethodState};
 use crate::ontology::Ontology;
 use crate::signals::{clip, Credit, ShapleyMethod, Signals};
 use crate::threshold::ThresholdFitter;
@@ -26,7 +30,7 @@ pub struct RoundRecord {
 }
 
 /// A validated round: unit-norm context and reports indexed by reporter and label.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Round {
     pub context: Vec<f64>,
     /// One flag per configured reporter.
@@ -43,8 +47,8 @@ impl Round {
     }
 }
 
-/// A labelled round as the bank, the correlation window and the threshold fit need it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+/// A labelled round as the methods learn from it.
+#[derive(Debug, Clone, PartialEq)]
 pub struct LabelledRound {
     /// Inference order of the round (ties in similarity go to the older one).
     pub seq: u64,
@@ -72,7 +76,7 @@ pub struct Inference {
 }
 
 /// One label's explanation: the prior and each member's weighted, guardrailed LLR.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct LabelExplanation {
     pub prior: f64,
     /// `(reporter index, w_i * lambda~_ik)` over the coalition.
@@ -101,7 +105,7 @@ pub struct FeedbackOutcome {
 }
 
 /// Per-reporter statistics kept across rounds (SPEC §4).
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct ReporterStats {
     /// Labelled rounds in which the reporter was present.
     pub rounds_credited: u64,
@@ -111,24 +115,20 @@ pub struct ReporterStats {
     pub utility: f64,
 }
 
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone)]
 pub struct Engine {
-    pub(crate) cfg: FusionConfig,
-    pub(crate) ontology: Ontology,
-    pub(crate) reporters: Vec<String>,
-    #[serde(skip)]
+    cfg: FusionConfig,
+    ontology: Ontology,
+    reporters: Vec<String>,
     index: HashMap<String, usize>,
-    pub(crate) dim: Option<usize>,
-    pub(crate) bank: Bank,
-    pub(crate) corr: CorrWindow,
-    pub(crate) w: Vec<f64>,
-    pub(crate) threshold: ThresholdFitter,
+    /// The context dimension in force: configured, or fixed by the first stored round.
+    dim: Option<usize>,
+    /// Reputations, one per reporter, summing to one.
+    w: Vec<f64>,
     stats: Vec<ReporterStats>,
-    pub(crate) labelled: u64,
-    /// `method = "adaptive"`: the pool of every observed round, the calibration, the decayed
-    /// whole-pool sums. `None` under `paper`.
-    #[serde(default)]
-    pub(crate) adaptive: Option<Adaptive>,
+    /// Labelled rounds applied: the clock every method's decay and cold-start rules read.
+    labelled: u64,
+    method: MethodState,
 }
 
 impl Engine {
@@ -155,35 +155,16 @@ impl Engine {
             }
         }
         let n = reporters.len();
-        let l = ontology.len();
-        let mut bank = Bank::new(n, l);
+        let mut method = MethodState::new(&cfg, n, ontology.len());
         if let Some(d) = cfg.dim {
-            bank.set_dim(d);
+            method.set_dim(d);
         }
-        let (threshold, adaptive) = match cfg.method {
-            Method::Paper => (ThresholdFitter::new(&cfg, l), None),
-            Method::Adaptive => {
-                // The adaptive method has its own cold-start rule for the threshold.
-                let tcfg = FusionConfig {
-                    threshold_initial: cfg.adaptive.threshold_initial,
-                    threshold_min_rounds: cfg.adaptive.threshold_min_rounds,
-                    ..cfg.clone()
-                };
-                (
-                    ThresholdFitter::new(&tcfg, l),
-                    Some(Adaptive::new(&cfg, n, l)),
-                )
-            }
-        };
         Ok(Self {
             dim: cfg.dim,
-            corr: CorrWindow::new(n, l, cfg.corr_window),
             w: vec![1.0 / n as f64; n],
-            threshold,
-            adaptive,
             stats: vec![ReporterStats::default(); n],
             labelled: 0,
-            bank,
+            method,
             index,
             reporters,
             ontology,
@@ -191,14 +172,27 @@ impl Engine {
         })
     }
 
-    /// Rebuilds the name index after deserialisation.
-    pub fn reindex(&mut self) {
-        self.index = self
-            .reporters
-            .iter()
-            .enumerate()
-            .map(|(i, r)| (r.clone(), i))
-            .collect();
+    /// The shared state as the method sees it.
+    fn ctx(&self) -> Ctx<'_> {
+        Ctx {
+            cfg: &self.cfg,
+            n: self.reporters.len(),
+            l: self.ontology.len(),
+            w: &self.w,
+            labelled: self.labelled,
+        }
+    }
+
+    /// The shared state and the method, borrowed apart, for the calls that change the method.
+    fn split(&mut self) -> (Ctx<'_>, &mut MethodState) {
+        let cx = Ctx {
+            cfg: &self.cfg,
+            n: self.reporters.len(),
+            l: self.ontology.len(),
+            w: &self.w,
+            labelled: self.labelled,
+        };
+        (cx, &mut self.method)
     }
 
     pub fn config(&self) -> &FusionConfig {
@@ -208,11 +202,16 @@ impl Engine {
     pub fn method(&self) -> Method {
         self.cfg.method
     }
+    /// Whether [`Engine::observe`] changes anything: the method learns from unlabelled rounds
+    /// (`adaptive`), so a rebuild must replay every stored round, not only the labelled ones.
+    pub fn observes(&self) -> bool {
+        self.method.observes()
+    }
 
     /// Whether the decisions served now are majority vote's: `adaptive`'s vote fallback, until
     /// the model has beaten the vote on the labelled rounds. Always false under `paper`.
     pub fn serving_vote(&self) -> bool {
-        self.adaptive.is_some() && self.ad_voting()
+        self.method.serving_vote(&self.ctx())
     }
     pub fn ontology(&self) -> &Ontology {
         &self.ontology
@@ -232,14 +231,16 @@ impl Engine {
     pub fn labelled(&self) -> u64 {
         self.labelled
     }
+    /// The contexts the method searches: SPEC's bank of labelled rounds under `paper`, the pool
+    /// of every observed round under `adaptive` (whose truths there are unused: the pool keeps
+    /// soft truths).
     pub fn bank(&self) -> &Bank {
-        &self.bank
+        self.method.bank()
     }
-    pub fn corr(&self) -> &CorrWindow {
-        &self.corr
-    }
+    /// The method's threshold fitter (under `adaptive` the served thresholds are its fit shrunk
+    /// toward `threshold_initial`; see [`Inference::thresholds`]).
     pub fn threshold(&self) -> &ThresholdFitter {
-        &self.threshold
+        self.method.threshold()
     }
     /// The context dimension in force: configured, or taken from the first stored round.
     pub fn dim(&self) -> Option<usize> {
@@ -256,10 +257,7 @@ impl Engine {
             }),
             _ => {
                 self.dim = Some(d);
-                self.bank.set_dim(d);
-                if let Some(ad) = self.adaptive.as_mut() {
-                    ad.pool.bank.set_dim(d);
-                }
+                self.method.set_dim(d);
                 Ok(())
             }
         }
@@ -352,167 +350,44 @@ impl Engine {
         Ok(y)
     }
 
+    /// Whether a round's sizes match this engine's reporters and labels.
+    pub fn fits(&self, round: &Round) -> bool {
+        let (n, l) = (self.reporters.len(), self.ontology.len());
+        round.present.len() == n && round.reports.len() == n * l
+    }
+
     /// Infers a round against the state as it stands (SPEC §2–3).
     pub fn infer(&self, round: &Round) -> Inference {
-        if self.adaptive.is_some() {
-            return self.ad_infer(round);
-        }
-        let nb = if self.bank.is_empty() || self.cfg.ablations.no_context {
-            Vec::new()
-        } else {
-            self.bank
-                .top_exact(&round.context, self.cfg.k.max(self.cfg.k_prior))
-        };
-        self.infer_from(round, &nb)
+        self.method.infer(&self.ctx(), round, None)
     }
 
-    /// Like [`Engine::infer`], with the bank similarities computed elsewhere (a batched GEMM).
-    /// Under `adaptive` the pool (not SPEC's bank) is searched and `sims` are ignored.
+    /// Like [`Engine::infer`], with the similarities computed elsewhere (a batched GEMM):
+    /// `sims[seq]` is the round's cosine to the round numbered `seq`, for every `seq` the
+    /// method's [`Engine::bank`] holds. Both methods search with them instead of scanning.
     pub fn infer_with_sims(&self, round: &Round, sims: &[f64]) -> Inference {
-        if self.adaptive.is_some() {
-            return self.ad_infer(round);
-        }
-        let nb = if self.bank.is_empty() || self.cfg.ablations.no_context {
-            Vec::new()
-        } else {
-            self.bank.top(sims, self.cfg.k.max(self.cfg.k_prior))
-        };
-        self.infer_from(round, &nb)
+        self.method.infer(&self.ctx(), round, Some(sims))
     }
 
-    fn infer_from(&self, round: &Round, nb: &[Neighbour]) -> Inference {
-        let signals = self.signals(round, nb);
-        let q = signals.full_posterior();
-        let thresholds = self.threshold.thresholds().to_vec();
-        let pred = q
-            .iter()
-            .zip(&thresholds)
-            .map(|(&p, &t)| (p >= t) as u8)
-            .collect();
-        Inference {
-            signals,
-            q,
-            thresholds,
-            pred,
-            w_used: self.w.clone(),
-            scan: None,
-        }
-    }
-
-    /// A round was stored without truth (after `/v1/fuse`, or a rounds-file line): under
-    /// `adaptive` it joins the pool with its soft truth (the inference's posterior), and the
-    /// per-event EM chunk runs. Under `paper`, unlabelled rounds change nothing. Idempotent per
-    /// `seq`; call it in the order rounds were stored, with the inference the round got.
+    /// A round was stored (after `/v1/fuse`, or a rounds-file line): under `adaptive` it joins
+    /// the pool with its soft truth (the inference's posterior), and the per-event EM chunk
+    /// runs. Under `paper`, rounds change nothing until they are labelled. Idempotent per `seq`;
+    /// call it in the order rounds were stored, with the inference the round got.
     pub fn observe(&mut self, seq: u64, round: &Round, inf: &Inference) -> Result<(), FusionError> {
-        if self.adaptive.is_none() {
+        if !self.method.observes() {
             return Ok(());
         }
-        if round.present.len() != self.reporters.len()
-            || round.reports.len() != self.reporters.len() * self.ontology.len()
-        {
+        if !self.fits(round) {
             return Err(FusionError::Config(
                 "observed round has sizes that do not match the engine".into(),
             ));
         }
-        self.ad_observe(seq, round, inf)
-    }
-
-    fn signals(&self, round: &Round, nb: &[Neighbour]) -> Signals {
-        let cfg = &self.cfg;
-        let l = self.ontology.len();
-        let coalition = round.coalition();
-        let p = coalition.len();
-        let mut theta_pos = vec![0.5; p * l];
-        let mut theta_neg = vec![0.5; p * l];
-        // Empty bank: SPEC fixes theta and pi at 0.5 (no signal), whatever the Beta priors.
-        let mut prior = vec![0.5; l];
-        if !self.bank.is_empty() {
-            // Sums a+, b+, a-, b- per member and label, and kernel mass and positives for pi.
-            let mut acc = vec![[0.0f64; 4]; p * l];
-            let mut pi_mass = 0.0;
-            let mut pi_pos = vec![0.0; l];
-            if cfg.ablations.no_context {
-                for (a, &i) in coalition.iter().enumerate() {
-                    for k in 0..l {
-                        let c = self.bank.global_counts(i, k);
-                        acc[a * l + k] = [c[0] as f64, c[1] as f64, c[2] as f64, c[3] as f64];
-                    }
-                }
-                pi_mass = self.bank.len() as f64;
-                for (k, v) in pi_pos.iter_mut().enumerate() {
-                    *v = self.bank.global_positives(k) as f64;
-                }
-            } else {
-                let kappa: Vec<f64> = nb.iter().map(|n| n.sim.max(0.0).powf(cfg.tau)).collect();
-                for (idx, n) in nb.iter().enumerate().take(cfg.k) {
-                    let kp = kappa[idx];
-                    for (a, &i) in coalition.iter().enumerate() {
-                        if !self.bank.present(n.pos, i) {
-                            continue;
-                        }
-                        for k in 0..l {
-                            let r = self.bank.report(n.pos, i, k);
-                            let y = self.bank.truth(n.pos, k);
-                            let cell = match (r, y) {
-                                (1, 1) => 0,
-                                (0, 1) => 1,
-                                (1, 0) => 2,
-                                _ => 3,
-                            };
-                            acc[a * l + k][cell] += kp;
-                        }
-                    }
-                }
-                for (idx, n) in nb.iter().enumerate().take(cfg.k_prior) {
-                    pi_mass += kappa[idx];
-                    for (k, v) in pi_pos.iter_mut().enumerate() {
-                        if self.bank.truth(n.pos, k) != 0 {
-                            *v += kappa[idx];
-                        }
-                    }
-                }
-            }
-            for (idx, c) in acc.iter().enumerate() {
-                let (ap, bp) = (cfg.alpha0 + c[0], cfg.beta0 + c[1]);
-                let (an, bn) = (cfg.alpha0 + c[2], cfg.beta0 + c[3]);
-                theta_pos[idx] = ap / (ap + bp);
-                theta_neg[idx] = an / (an + bn);
-            }
-            for k in 0..l {
-                prior[k] =
-                    (cfg.prior_alpha + pi_pos[k]) / (cfg.prior_alpha + cfg.prior_beta + pi_mass);
-            }
+        if !self.method.wants(&self.ctx(), seq) {
+            return Ok(());
         }
-        let mut rho = vec![0.0; p * p * l];
-        if !cfg.ablations.no_guardrail {
-            for a in 0..p {
-                for b in 0..p {
-                    if a == b {
-                        continue;
-                    }
-                    for k in 0..l {
-                        rho[(a * p + b) * l + k] =
-                            self.corr.rho(coalition[a], coalition[b], k, cfg.rho_max);
-                    }
-                }
-            }
-        }
-        let mut reports = Vec::with_capacity(p * l);
-        for &i in &coalition {
-            reports.extend_from_slice(&round.reports[i * l..(i + 1) * l]);
-        }
-        let w = coalition.iter().map(|&i| self.w[i]).collect();
-        Signals {
-            l,
-            coalition,
-            theta_pos,
-            theta_neg,
-            rho,
-            prior,
-            reports,
-            w,
-            eps: cfg.eps,
-        }
+        self.fix_dim(round.context.len())?;
+        let (cx, method) = self.split();
+        method.observe(&cx, seq, round, inf);
+        Ok(())
     }
 
     /// Per-label explanation of an inference: prior and each member's weighted, guardrailed LLR.
@@ -569,15 +444,10 @@ impl Engine {
         let w_after = if cfg.ablations.frozen_reputation {
             w_before.clone()
         } else {
-            match cfg.method {
-                Method::Paper => reputation_update(&w_before, &phi, cfg.eta),
-                Method::Adaptive => self.ad_reputation(&w_before, &phi, &signals.coalition),
-            }
+            self.method
+                .reputation(&self.ctx(), &w_before, &phi, &signals.coalition)
         };
-        let (evidence, prior_logit) = match cfg.method {
-            Method::Paper => (Vec::new(), Vec::new()),
-            Method::Adaptive => (signals.evidence(), signals.prior_logit()),
-        };
+        let (evidence, prior_logit) = self.method.calibration_inputs(signals);
         FeedbackOutcome {
             credit,
             phi,
@@ -590,19 +460,16 @@ impl Engine {
     }
 
     /// Applies a labelled round: the reputation update and statistics of its outcome (if given),
-    /// the bank, the correlation window and the threshold refit.
+    /// then the method's side (its bank or pool, correlations, calibration, threshold refit),
+    /// then the labelled-round counter advances.
     pub fn apply(
         &mut self,
         lr: &LabelledRound,
         outcome: Option<&FeedbackOutcome>,
     ) -> Result<(), FusionError> {
-        let d = lr.round.context.len();
-        self.fix_dim(d)?;
+        self.fix_dim(lr.round.context.len())?;
         if let Some(o) = outcome {
             self.w.clone_from(&o.w_after);
-            if self.adaptive.is_some() {
-                self.ad_credit_push(&o.phi, &lr.round.present);
-            }
             let t = self.labelled as i32; // t - 1 for the round being labelled now
             let disc = self.cfg.payoff_delta.powi(t);
             for (i, st) in self.stats.iter_mut().enumerate() {
@@ -614,70 +481,12 @@ impl Engine {
                 st.utility += disc * o.payoff[i];
             }
         }
-        if self.adaptive.is_none() {
-            self.bank.push(
-                lr.seq,
-                &lr.round.context,
-                &lr.round.present,
-                &lr.round.reports,
-                &lr.truth,
-            );
-        }
-        let l = self.ontology.len();
-        self.corr
-            .push(&lr.round.present, &lr.round.reports, &lr.truth);
-        debug_assert_eq!(lr.q.len(), l);
-        if self.adaptive.is_some() {
-            // Also pushes to the threshold fitter (what it fits on depends on the mode).
-            self.ad_apply(lr, outcome);
-        } else {
-            self.threshold.push(&lr.q, &lr.truth);
-        }
+        debug_assert_eq!(lr.q.len(), self.ontology.len());
+        let (cx, method) = self.split();
+        method.apply(&cx, lr, outcome);
         self.labelled += 1;
-        if self.adaptive.is_some() {
-            self.ad_after_apply();
-        }
         Ok(())
     }
-
-    /// Sets the reputations and statistics directly, for a store that rebuilds the engine from
-    /// its tables (the bank side is rebuilt with `apply(.., None)`).
-    pub fn restore(&mut self, w: Vec<f64>, stats: Vec<ReporterStats>) -> Result<(), FusionError> {
-        if w.len() != self.reporters.len() || stats.len() != self.reporters.len() {
-            return Err(FusionError::Config(
-                "restored state has the wrong number of reporters".into(),
-            ));
-        }
-        self.w = w;
-        self.stats = stats;
-        Ok(())
-    }
-}
-
-/// Fixed-share mixing `w <- (1 - alpha) w + alpha / n` (docs/METHOD.md §6); `alpha = 0` returns
-/// `w` untouched.
-pub fn fixed_share(w: &[f64], alpha: f64) -> Vec<f64> {
-    if alpha == 0.0 {
-        return w.to_vec();
-    }
-    let n = w.len() as f64;
-    w.iter().map(|&x| (1.0 - alpha) * x + alpha / n).collect()
-}
-
-/// `w_i <- w_i exp(eta phi_i) / sum_j w_j exp(eta phi_j)`. The exponent is shifted by its maximum,
-/// which cancels in the ratio and keeps `exp` from overflowing on a huge credit.
-pub fn reputation_update(w: &[f64], phi: &[f64], eta: f64) -> Vec<f64> {
-    let m = phi
-        .iter()
-        .map(|p| eta * p)
-        .fold(f64::NEG_INFINITY, f64::max);
-    let raw: Vec<f64> = w
-        .iter()
-        .zip(phi)
-        .map(|(wi, p)| wi * (eta * p - m).exp())
-        .collect();
-    let s: f64 = raw.iter().sum();
-    raw.iter().map(|r| r / s).collect()
 }
 
 impl ShapleyMethod {

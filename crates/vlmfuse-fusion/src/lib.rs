@@ -1,8 +1,9 @@
 //! The fusion method of SPEC.md §1–7, with no I/O: Shapley-credited, context-aware
-//! Dawid–Skene with an agreement guardrail. Everything here is deterministic and serialisable;
-//! the service persists it and `eval` replays it.
+//! Dawid–Skene with an agreement guardrail, and the `adaptive` method of docs/METHOD.md.
+//! Everything here is deterministic: the engine is a pure function of its events, so the
+//! service persists the events and rebuilds the engine by replaying them ([`replay`]), as `eval`
+//! does over a rounds file.
 
-pub mod adaptive;
 pub mod bank;
 pub mod bench;
 pub mod config;
@@ -10,18 +11,22 @@ pub mod corr;
 pub mod curve;
 pub mod engine;
 pub mod error;
+mod method;
 pub mod metrics;
 pub mod ontology;
 pub mod replay;
+pub mod reputation;
 pub mod signals;
 pub mod threshold;
 
-pub use adaptive::{AdaptiveConfig, Guardrail, Reputation, SoftTruth, WeightNorm};
 pub use config::{Ablations, FusionConfig, Method, ThresholdMode};
 pub use engine::{
-    fixed_share, reputation_update, Engine, FeedbackOutcome, Inference, LabelExplanation,
-    LabelledRound, ReporterStats, Round, RoundRecord,
+    Engine, FeedbackOutcome, Inference, LabelExplanation, LabelledRound, ReporterStats, Round,
+    RoundRecord,
 };
 pub use error::FusionError;
+pub use method::adaptive::{AdaptiveConfig, Guardrail, Reputation, Scan, SoftTruth, WeightNorm};
 pub use ontology::{Label, Ontology};
+/// SPEC §5's multiplicative update, [`reputation::multiplicative`].
+pub use reputation::{fixed_share, multiplicative as reputation_update};
 pub use signals::{Credit, ShapleyMethod, Signals};

@@ -2,7 +2,7 @@
 
 use crate::signals::clip;
 use crate::threshold::jaccard;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 
 pub const ECE_BINS: usize = 10;
 
@@ -25,7 +25,7 @@ pub struct MetricsAcc {
     latencies: Vec<f64>,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct ReliabilityBin {
     pub lo: f64,
     pub hi: f64,
@@ -34,7 +34,7 @@ pub struct ReliabilityBin {
     pub observed: f64,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Scores {
     pub rounds: usize,
     pub hamming: f64,

@@ -1,21 +1,183 @@
-//! The paper's evaluation protocol (SPEC §9, `eval`): rounds in file order, each first predicted
-//! with the state as it stands and then learned from if it has truth. The first `split` share is
-//! history and is not scored.
+//! The one replay: an engine's events in, the engine they lead to out. Two kinds of event make
+//! an engine's history, in the order its writer saw them: a round was fused and stored
+//! ([`Replay::round`]: inferred, unless the inference it was served is given, then observed),
+//! and a round got its feedback ([`Replay::feedback`]: credited, unless the outcome computed
+//! then is given, then applied). The store rebuilds the service's engine with it on start
+//! (stored inferences and outcomes, or fresh ones when the configured method changed), and
+//! `eval` runs the paper's protocol with it.
 //!
-//! With `batch_knn`, the similarities of a block of upcoming rounds to every earlier round are one
-//! GEMM (faer) instead of one dot product per pair; each round then reads its row restricted to
-//! what its bank holds at that moment, so the results are those of the per-query path.
+//! The protocol (SPEC §9, `eval`, [`replay()`]): rounds in file order, each first predicted with
+//! the state as it stands and then learned from if it has truth. The first `split` share is
+//! history and is not scored. With `batch_knn`, the similarities of a block of upcoming rounds to
+//! every earlier round are one GEMM (faer) instead of one dot product per pair; each round then
+//! reads, from its row, the entries its method's bank holds at that moment, so the results are
+//! those of the per-query path up to the GEMM's rounding.
 
 use crate::config::{FusionConfig, Method};
-use crate::engine::{Engine, LabelledRound, Round, RoundRecord};
+use crate::engine::{Engine, FeedbackOutcome, Inference, LabelledRound, Round, RoundRecord};
 use crate::error::FusionError;
+use crate::method::adaptive::majority_vote;
 use crate::metrics::{MetricsAcc, Scores};
 use crate::ontology::Ontology;
 use crate::signals::ShapleyMethod;
 use faer::{Accum, MatMut, MatRef, Par};
-use serde::{Deserialize, Serialize};
-use std::collections::BTreeSet;
+use std::collections::{BTreeSet, HashMap};
 use std::time::Instant;
+
+/// A replay that cannot go on: the engine refused an event, or the events contradict each other
+/// or the engine (a damaged or foreign history).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ReplayError {
+    #[error(transparent)]
+    Fusion(#[from] FusionError),
+    #[error("{0}")]
+    Inconsistent(String),
+}
+
+/// A round was fused and stored.
+#[derive(Debug, Clone)]
+pub struct RoundEvent<'a> {
+    pub seq: u64,
+    pub round: Round,
+    /// The inference the round was served; `None`: infer it now, against the state as it stands.
+    pub served: Option<Inference>,
+    /// For a fresh inference: the round's cosines to earlier rounds, indexed by `seq`
+    /// ([`Engine::infer_with_sims`]); `None`: the method searches its bank itself.
+    pub sims: Option<&'a [f64]>,
+    /// Whether the round joins the state ([`Engine::observe`]); `eval --frozen`'s test rounds
+    /// are only predicted.
+    pub observe: bool,
+    /// A [`FeedbackEvent`] for this round without a stored outcome follows: keep the inference
+    /// until then, its credit is computed from it.
+    pub credit_later: bool,
+}
+
+/// A round got its feedback.
+#[derive(Debug, Clone)]
+pub struct FeedbackEvent {
+    pub seq: u64,
+    pub truth: Vec<u8>,
+    /// What was stored with it; `None`: the round's [`RoundEvent`] (with `credit_later`) came
+    /// earlier in this replay, and the credit is computed now from the inference it got.
+    pub stored: Option<StoredLabel>,
+}
+
+/// A feedback as stored: the round, the posteriors it was served and the outcome computed then.
+#[derive(Debug, Clone)]
+pub struct StoredLabel {
+    pub round: Round,
+    pub q: Vec<f64>,
+    pub outcome: FeedbackOutcome,
+}
+
+/// Feeds events to an engine, in order. Given the stored inferences and outcomes the result is
+/// the engine that lived through them, bit for bit: the very floating-point operations in the
+/// same order.
+pub struct Replay<'e> {
+    engine: &'e mut Engine,
+    /// Fresh inferences of rounds whose feedback (to be credited from them) is still to come.
+    pending: HashMap<u64, (Round, Inference)>,
+}
+
+impl<'e> Replay<'e> {
+    pub fn new(engine: &'e mut Engine) -> Self {
+        Self {
+            engine,
+            pending: HashMap::new(),
+        }
+    }
+
+    /// The engine as the events so far left it.
+    pub fn engine(&self) -> &Engine {
+        self.engine
+    }
+
+    fn check_round(&self, seq: u64, round: &Round) -> Result<(), ReplayError> {
+        if self.engine.fits(round) {
+            return Ok(());
+        }
+        Err(ReplayError::Inconsistent(format!(
+            "round {seq} has sizes that do not match {} reporters and {} labels",
+            self.engine.reporters().len(),
+            self.engine.ontology().len()
+        )))
+    }
+
+    /// A round was stored: its inference (the one it was served, or a fresh one), then
+    /// [`Engine::observe`]. Returns the inference.
+    pub fn round(&mut self, ev: RoundEvent<'_>) -> Result<Inference, ReplayError> {
+        self.check_round(ev.seq, &ev.round)?;
+        let inf = match ev.served {
+            Some(inf) => inf,
+            None => match ev.sims {
+                Some(s) => self.engine.infer_with_sims(&ev.round, s),
+                None => self.engine.infer(&ev.round),
+            },
+        };
+        if ev.observe {
+            self.engine.observe(ev.seq, &ev.round, &inf)?;
+        }
+        if ev.credit_later {
+            // Credit needs the signals and the reputations used, `apply` the posteriors; the
+            // pool scan is spent once the round has been observed.
+            let mut kept = inf.clone();
+            kept.scan = None;
+            self.pending.insert(ev.seq, (ev.round, kept));
+        }
+        Ok(inf)
+    }
+
+    /// A round got its feedback: the outcome (the stored one, or credited now from the round's
+    /// inference against the reputations as they stand), then [`Engine::apply`]. Returns the
+    /// outcome.
+    pub fn feedback(&mut self, ev: FeedbackEvent) -> Result<FeedbackOutcome, ReplayError> {
+        let seq = ev.seq;
+        let l = self.engine.ontology().len();
+        if ev.truth.len() != l {
+            return Err(ReplayError::Inconsistent(format!(
+                "feedback for round {seq} has {} labels, not {l}",
+                ev.truth.len()
+            )));
+        }
+        let (lr, outcome) = match ev.stored {
+            Some(s) => {
+                self.check_round(seq, &s.round)?;
+                if s.q.len() != l {
+                    return Err(ReplayError::Inconsistent(format!(
+                        "round {seq} has {} posteriors, not {l}",
+                        s.q.len()
+                    )));
+                }
+                let lr = LabelledRound {
+                    seq,
+                    round: s.round,
+                    truth: ev.truth,
+                    q: s.q,
+                };
+                (lr, s.outcome)
+            }
+            None => {
+                let (round, inf) = self.pending.remove(&seq).ok_or_else(|| {
+                    ReplayError::Inconsistent(format!(
+                        "feedback for round {seq} precedes the round in event order"
+                    ))
+                })?;
+                let o = self
+                    .engine
+                    .credit(&inf.signals, &inf.w_used, &ev.truth, seq);
+                let lr = LabelledRound {
+                    seq,
+                    round,
+                    truth: ev.truth,
+                    q: inf.q,
+                };
+                (lr, o)
+            }
+        };
+        self.engine.apply(&lr, Some(&outcome))?;
+        Ok(outcome)
+    }
+}
 
 /// A validated line of a rounds file.
 #[derive(Debug, Clone)]
@@ -118,7 +280,7 @@ pub fn history_len(n: usize, split: f64) -> usize {
     ((split * n as f64) + 1e-9).floor().clamp(0.0, n as f64) as usize
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct RoundOutcome {
     pub id: String,
     pub history: bool,
@@ -134,22 +296,20 @@ pub struct RoundOutcome {
     pub latency_s: f64,
 }
 
-/// Replays the rounds through the engine. `progress` is called with the number of rounds done.
+/// Replays the rounds through the engine (the protocol above). `progress` is called with the
+/// number of rounds done.
 pub fn replay(
     mut engine: Engine,
     rounds: &[ParsedRound],
     opts: &ReplayOptions,
     progress: &mut dyn FnMut(usize),
-) -> Result<(Engine, Vec<RoundOutcome>), FusionError> {
+) -> Result<(Engine, Vec<RoundOutcome>), ReplayError> {
     let n = rounds.len();
     let n_hist = history_len(n, opts.split);
     let mut out = Vec::with_capacity(n);
-    // File index of every bank entry, in bank order.
-    let mut bank_src: Vec<usize> = Vec::new();
     let block = (16_000_000 / n.max(1)).clamp(16, 512);
     let dim = rounds.first().map(|r| r.round.context.len()).unwrap_or(0);
-    // The adaptive method searches its own pool (every observed round), not SPEC's bank.
-    let batch = opts.batch_knn && engine.method() == Method::Paper;
+    let batch = opts.batch_knn && BATCHED.contains(&engine.method());
     let mut keys: Vec<f64> = Vec::new();
     if batch {
         keys.reserve(n * dim);
@@ -158,7 +318,7 @@ pub fn replay(
         }
     }
     let mut gram: Vec<f64> = Vec::new();
-    let mut sims: Vec<f64> = Vec::new();
+    let mut replay = Replay::new(&mut engine);
     let mut t0 = 0;
     while t0 < n {
         let t1 = (t0 + block).min(n);
@@ -175,43 +335,38 @@ pub fn replay(
         }
         for t in t0..t1 {
             let pr = &rounds[t];
+            let seq = t as u64;
             let start = Instant::now();
-            let inf = if batch {
-                let row = &gram[(t - t0) * t1..(t - t0 + 1) * t1];
-                sims.clear();
-                sims.extend(bank_src.iter().map(|&s| row[s]));
-                engine.infer_with_sims(&pr.round, &sims)
-            } else {
-                engine.infer(&pr.round)
-            };
             let history = t < n_hist;
             let learning = history || !opts.frozen;
-            let learn = pr.truth.is_some() && learning;
-            if learning {
+            let learn = learning && pr.truth.is_some();
+            // Row t of the block: cosines to every round of the file before this one, by index.
+            let row = (t - t0) * t1;
+            let inf = replay.round(RoundEvent {
+                seq,
+                round: pr.round.clone(),
+                served: None,
+                sims: batch.then(|| &gram[row..row + t]),
                 // As the service does when it stores a round: under `adaptive` it joins the
                 // pool (its label, if any, follows right after); under `paper` a no-op.
-                engine.observe(t as u64, &pr.round, &inf)?;
-            }
+                observe: learning,
+                credit_later: learn,
+            })?;
             let mut phi = None;
             let mut std_error = None;
-            if learn {
-                let truth = pr.truth.as_ref().expect("learn implies truth");
-                let outcome = engine.credit(&inf.signals, &inf.w_used, truth, t as u64);
+            if let (true, Some(truth)) = (learn, &pr.truth) {
+                let outcome = replay.feedback(FeedbackEvent {
+                    seq,
+                    truth: truth.clone(),
+                    stored: None,
+                })?;
                 if let ShapleyMethod::Sampled { std_error: se, .. } = &outcome.credit.method {
-                    let mut full = vec![0.0; engine.reporters().len()];
+                    let mut full = vec![0.0; inf.w_used.len()];
                     for (a, &i) in inf.signals.coalition.iter().enumerate() {
                         full[i] = se[a];
                     }
                     std_error = Some(full);
                 }
-                let lr = LabelledRound {
-                    seq: t as u64,
-                    round: pr.round.clone(),
-                    truth: truth.clone(),
-                    q: inf.q.clone(),
-                };
-                engine.apply(&lr, Some(&outcome))?;
-                bank_src.push(t);
                 phi = Some(outcome.phi);
             }
             out.push(RoundOutcome {
@@ -223,7 +378,7 @@ pub fn replay(
                 w_used: inf.w_used,
                 phi,
                 shapley_std_error: std_error,
-                w_after: engine.reputations().to_vec(),
+                w_after: replay.engine().reputations().to_vec(),
                 latency_s: start.elapsed().as_secs_f64() + gemm_s,
             });
             progress(t + 1);
@@ -232,6 +387,11 @@ pub fn replay(
     }
     Ok((engine, out))
 }
+
+/// The methods `batch_knn` batches. `adaptive` is replayed on the per-query path, the one the
+/// service runs, so that `eval` under the default method answers as the service does bit for
+/// bit (`tests/process/replay.rs`); a GEMM's cosines differ from `dot`'s in the last bits.
+const BATCHED: [Method; 1] = [Method::Paper];
 
 /// Scores the method on the scored rounds (after the history, with truth).
 pub fn score_method(
@@ -276,15 +436,7 @@ pub fn score_baselines(
             let prob: Vec<f64> = pred.iter().map(|&p| p as f64).collect();
             acc.add(&pred, &prob, truth, None);
         }
-        let present = r.round.present.iter().filter(|&&p| p).count();
-        let pred: Vec<u8> = (0..l)
-            .map(|k| {
-                let votes = (0..n)
-                    .filter(|&i| r.round.present[i] && r.round.reports[i * l + k] != 0)
-                    .count();
-                (2 * votes > present) as u8
-            })
-            .collect();
+        let pred = majority_vote(&r.round, l);
         let prob: Vec<f64> = pred.iter().map(|&p| p as f64).collect();
         accs[n].add(&pred, &prob, truth, None);
     }

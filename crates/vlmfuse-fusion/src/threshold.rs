@@ -9,10 +9,9 @@
 //! recomputed in f64 from the window instead.)
 
 use crate::config::{FusionConfig, ThresholdMode};
-use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone)]
 pub struct ThresholdFitter {
     mode: ThresholdMode,
     grid: Vec<f64>,
@@ -89,10 +88,6 @@ impl ThresholdFitter {
 
     pub fn mode(&self) -> ThresholdMode {
         self.mode
-    }
-
-    pub fn labelled(&self) -> u64 {
-        self.labelled
     }
 
     /// For every label, how many grid points lie at or below its posterior: the label is

@@ -154,3 +154,47 @@ fn with_no_label_it_votes_instead_of_switching_every_label_on() {
     assert_eq!(p.labelled(), 0);
     assert!(pinfs[0].pred.iter().all(|&b| b == 1));
 }
+
+/// With the cosines computed elsewhere (by `seq`, as a batched GEMM gives them), each method
+/// infers exactly as when it searches its own bank or pool.
+#[test]
+fn given_cosines_infer_as_the_search_does() {
+    let l = Ontology::paper().len();
+    let events = stream(3, 120, l);
+    for cfg in [FusionConfig::paper(), adaptive()] {
+        let mut e = Engine::new(cfg, Ontology::paper(), names()).unwrap();
+        let mut contexts: Vec<Vec<f64>> = Vec::new();
+        for (t, (ctx, present, reports, y)) in events.iter().enumerate() {
+            let round = Round {
+                context: e.normalise_context(ctx).unwrap(),
+                present: present.clone(),
+                reports: reports.clone(),
+            };
+            let sims: Vec<f64> = contexts
+                .iter()
+                .map(|c| vlmfuse_fusion::bank::dot(&round.context, c))
+                .collect();
+            let inf = e.infer(&round);
+            let given = e.infer_with_sims(&round, &sims);
+            assert_eq!(
+                (&given.q, &given.pred, &given.signals, &given.thresholds),
+                (&inf.q, &inf.pred, &inf.signals, &inf.thresholds),
+                "{} round {t}",
+                e.method()
+            );
+            let seq = t as u64;
+            e.observe(seq, &round, &inf).unwrap();
+            if let Some(y) = y {
+                let o = e.credit(&inf.signals, &inf.w_used, y, seq);
+                let lr = LabelledRound {
+                    seq,
+                    round: round.clone(),
+                    truth: y.clone(),
+                    q: inf.q.clone(),
+                };
+                e.apply(&lr, Some(&o)).unwrap();
+            }
+            contexts.push(round.context);
+        }
+    }
+}

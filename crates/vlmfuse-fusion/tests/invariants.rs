@@ -310,7 +310,7 @@ fn rejected_rounds_name_the_problem_and_change_nothing() {
         ..FusionConfig::paper()
     };
     let e = Engine::new(cfg, Ontology::paper(), names()).unwrap();
-    let before = serde_json::to_string(&e).unwrap();
+    let before = format!("{e:?}");
     let cases: Vec<(RoundRecord, &str)> = vec![
         (
             record(vec![1.0, 0.0], &[("a", &[])], None),
@@ -347,7 +347,7 @@ fn rejected_rounds_name_the_problem_and_change_nothing() {
         let err: FusionError = e.parse(&rec).unwrap_err();
         assert_eq!(err.kind(), kind, "{err}");
     }
-    assert_eq!(before, serde_json::to_string(&e).unwrap());
+    assert_eq!(before, format!("{e:?}"));
     // Huge but finite numbers are a direction like any other.
     let (r, _) = e
         .parse(&record(vec![1e300, 1e300, 0.0], &[("a", &[])], None))

@@ -23,8 +23,8 @@ use candle_core::{DType, Device, Tensor};
 use serde_json::Value;
 use vlmfuse_models::models::qwen3_vl::{LoadOptions, Qwen3Vl, Qwen3VlProcessor};
 use vlmfuse_models::{FrameRef, WeightSource};
-use vlmfuse_testkit::fixtures::qwen3_vl::parity_frame;
-use vlmfuse_testkit::fixtures::TinyQwen3Vl;
+use vlmfuse_testkit_models::fixtures::qwen3_vl::parity_frame;
+use vlmfuse_testkit_models::fixtures::TinyQwen3Vl;
 
 /// What the parity tests allow between this crate's model and transformers.
 const LOGIT_TOL: f32 = 1e-4;

@@ -12,7 +12,10 @@
 use rusqlite::{params, Connection, OptionalExtension, TransactionBehavior};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
-use vlmfuse_fusion::{Engine, FeedbackOutcome, FusionError, Inference, LabelledRound, Round};
+use vlmfuse_fusion::replay::{FeedbackEvent, Replay, ReplayError, RoundEvent, StoredLabel};
+#[cfg(test)]
+use vlmfuse_fusion::LabelledRound;
+use vlmfuse_fusion::{Engine, FeedbackOutcome, FusionError, Inference, Round};
 
 /// Bumped when the schema changes incompatibly; an old database is then refused, not misread.
 pub const SCHEMA_VERSION: i64 = 1;
@@ -41,6 +44,15 @@ pub enum StoreError {
     Corrupt(String),
     #[error("rebuilding the engine failed: {0}")]
     Fusion(#[from] FusionError),
+}
+
+impl From<ReplayError> for StoreError {
+    fn from(e: ReplayError) -> Self {
+        match e {
+            ReplayError::Fusion(e) => StoreError::Fusion(e),
+            ReplayError::Inconsistent(m) => StoreError::Corrupt(m),
+        }
+    }
 }
 
 /// The part of the service's configuration that fixes what indices in the database mean.
@@ -149,6 +161,77 @@ fn blob_to_f64s(b: &[u8]) -> Result<Vec<f64>, StoreError> {
 
 fn bools_to_blob(v: &[bool]) -> Vec<u8> {
     v.iter().map(|&b| b as u8).collect()
+}
+
+/// A round from the `context`, `present` and `reports` columns of a row, from column `at`.
+fn round_from(row: &rusqlite::Row<'_>, at: usize) -> Result<Round, StoreError> {
+    Ok(Round {
+        context: blob_to_f64s(row.get_ref(at)?.as_blob()?)?,
+        present: row
+            .get_ref(at + 1)?
+            .as_blob()?
+            .iter()
+            .map(|&b| b != 0)
+            .collect(),
+        reports: row.get_ref(at + 2)?.as_blob()?.to_vec(),
+    })
+}
+
+/// What a replay recomputed (under another method), and how many feedbacks it applied.
+#[derive(Default)]
+struct Replayed {
+    labelled: u64,
+    inferences: Vec<(u64, Inference)>,
+    outcomes: Vec<(u64, FeedbackOutcome)>,
+}
+
+/// The `rounds` rows, fed to a replay up to a point in event order.
+struct RoundFeed<'s> {
+    /// `None` when the replay needs no rounds (a method that learns only from feedback).
+    rows: Option<rusqlite::Rows<'s>>,
+    /// Rounds before this `seq` have been fed.
+    fed: u64,
+    /// Infer each round again instead of reading its stored inference.
+    fresh: bool,
+}
+
+impl RoundFeed<'_> {
+    /// Feeds the rounds stored before the `upto`-th.
+    fn feed(
+        &mut self,
+        upto: u64,
+        replay: &mut Replay,
+        out: &mut Replayed,
+    ) -> Result<(), StoreError> {
+        let Some(rows) = self.rows.as_mut() else {
+            return Ok(());
+        };
+        while self.fed < upto {
+            let Some(row) = rows.next()? else {
+                self.fed = upto;
+                break;
+            };
+            let seq = row.get::<_, i64>(0)? as u64;
+            let served = if self.fresh {
+                None
+            } else {
+                Some(serde_json::from_slice(row.get_ref(4)?.as_bytes()?)?)
+            };
+            let inf = replay.round(RoundEvent {
+                seq,
+                round: round_from(row, 1)?,
+                served,
+                sims: None,
+                observe: true,
+                credit_later: self.fresh && row.get::<_, bool>(5)?,
+            })?;
+            if self.fresh {
+                out.inferences.push((seq, inf));
+            }
+            self.fed = seq + 1;
+        }
+        Ok(())
+    }
 }
 
 fn now_ms() -> i64 {
@@ -336,15 +419,16 @@ impl Store {
     }
 
     /// Rebuilds a freshly built engine (same reporters, ontology and config as the database)
-    /// by replaying the stored events in the order the writer saw them: every round as it was
-    /// stored (which the `adaptive` method learns from, `Engine::observe`) and every feedback
-    /// in labelling order, at the point among the rounds where it was applied.
+    /// by replaying the stored events ([`vlmfuse_fusion::replay::Replay`]) in the order the
+    /// writer saw them: every round as it was stored (which the `adaptive` method learns from,
+    /// `Engine::observe`) and every feedback in labelling order, at the point among the rounds
+    /// where it was applied.
     ///
-    /// Under the method the database was written with, each feedback applies its stored
-    /// outcome rather than recomputing it, which is what makes a restart exact: the reputation
-    /// and statistics updates are the very floating-point operations the live service did, in
-    /// the same order. Under another method (the configuration changed `[fusion] method`) the
-    /// rounds are the state: each round is inferred again, each credit recomputed, and the
+    /// Under the method the database was written with, each round comes with the inference it
+    /// was served and each feedback with its stored outcome, which is what makes a restart
+    /// exact: the replay makes the very floating-point operations the live service did, in the
+    /// same order. Under another method (the configuration changed `[fusion] method`) the rounds
+    /// are the state: the replay infers each round again and recomputes each credit, and the
     /// outcomes, the rounds' stored inferences and the state row are rewritten in one
     /// transaction, so the database then reads as if it had been written under the new method.
     pub fn load_engine(&mut self, engine: &mut Engine) -> Result<LoadReport, StoreError> {
@@ -359,193 +443,143 @@ impl Store {
         let method = engine.method().name().to_string();
         let stored = self.method()?;
         let migrate = stored.as_deref().is_some_and(|m| m != method);
-        let n = engine.reporters().len();
-        let l = engine.ontology().len();
-        // The rounds matter only to a method that learns from them, or when recomputing.
-        let needs_rounds = migrate || engine.method() != vlmfuse_fusion::Method::Paper;
         let (rounds, max_seq): (i64, Option<i64>) =
             self.conn
                 .query_row("SELECT COUNT(*), MAX(seq) FROM rounds", [], |r| {
                     Ok((r.get(0)?, r.get(1)?))
                 })?;
         let next_seq = max_seq.map(|m| m as u64 + 1).unwrap_or(0);
-        let check = |seq: u64, round: &Round| -> Result<(), StoreError> {
-            if round.present.len() != n || round.reports.len() != n * l {
-                return Err(StoreError::Corrupt(format!(
-                    "round {seq} has sizes that do not match {n} reporters and {l} labels"
-                )));
+        let replayed = self.replay_into(engine, migrate)?;
+        if migrate {
+            self.rewrite(&method, engine, &replayed)?;
+        } else {
+            self.check_state(engine, replayed.labelled)?;
+            if stored.is_none() {
+                self.set_method(&method)?;
             }
-            Ok(())
-        };
-        let mut new_outcomes: Vec<(u64, String)> = Vec::new();
-        let mut new_inferences: Vec<(u64, String, Vec<u8>, f64)> = Vec::new();
-        let mut labelled = 0u64;
-        {
-            let mut round_stmt = self.conn.prepare(
-                "SELECT r.seq, r.context, r.present, r.reports, d.inference
-                 FROM rounds r JOIN round_detail d ON d.seq = r.seq ORDER BY r.seq",
-            )?;
-            let mut round_rows = if needs_rounds {
+        }
+        Ok(LoadReport {
+            rounds: rounds as u64,
+            labelled: replayed.labelled,
+            next_seq,
+            migrated_from: if migrate { stored } else { None },
+        })
+    }
+
+    /// Reads the stored events in the writer's order and feeds them to `engine`. With `fresh`
+    /// the stored inferences and outcomes are left unread (the replay computes new ones, which
+    /// are returned); without it, the rounds are read only if the engine learns from them.
+    fn replay_into(&self, engine: &mut Engine, fresh: bool) -> Result<Replayed, StoreError> {
+        let mut out = Replayed::default();
+        let mut round_stmt = self.conn.prepare(
+            "SELECT r.seq, r.context, r.present, r.reports, d.inference,
+                    EXISTS (SELECT 1 FROM feedback f WHERE f.seq = r.seq)
+             FROM rounds r JOIN round_detail d ON d.seq = r.seq ORDER BY r.seq",
+        )?;
+        let mut rounds = RoundFeed {
+            rows: if fresh || engine.observes() {
                 Some(round_stmt.query([])?)
             } else {
                 None
+            },
+            fed: 0,
+            fresh,
+        };
+        let mut fb_stmt = self.conn.prepare(
+            "SELECT r.seq, r.context, r.present, r.reports, r.q, f.truth, f.outcome,
+                    f.rounds_before
+             FROM feedback f JOIN rounds r ON r.seq = f.seq
+             ORDER BY f.labelled_order",
+        )?;
+        let mut fb_rows = fb_stmt.query([])?;
+        let mut replay = Replay::new(engine);
+        while let Some(row) = fb_rows.next()? {
+            let seq = row.get::<_, i64>(0)? as u64;
+            let before = row.get::<_, Option<i64>>(7)?.map_or(seq + 1, |b| b as u64);
+            rounds.feed(before, &mut replay, &mut out)?;
+            let stored = if fresh {
+                None
+            } else {
+                Some(StoredLabel {
+                    round: round_from(row, 1)?,
+                    q: blob_to_f64s(row.get_ref(4)?.as_blob()?)?,
+                    outcome: serde_json::from_slice(row.get_ref(6)?.as_bytes()?)?,
+                })
             };
-            // Rounds observed so far, and (when recomputing) the inference each got, until its
-            // feedback uses it.
-            let mut observed = 0u64;
-            let mut inferred: std::collections::HashMap<u64, (Round, Inference)> =
-                std::collections::HashMap::new();
-            let mut advance =
-                |upto: u64,
-                 engine: &mut Engine,
-                 inferred: &mut std::collections::HashMap<u64, (Round, Inference)>,
-                 new_inferences: &mut Vec<(u64, String, Vec<u8>, f64)>|
-                 -> Result<(), StoreError> {
-                    let Some(rows) = round_rows.as_mut() else {
-                        return Ok(());
-                    };
-                    while observed < upto {
-                        let Some(row) = rows.next()? else {
-                            observed = upto;
-                            break;
-                        };
-                        let seq = row.get::<_, i64>(0)? as u64;
-                        let round = Round {
-                            context: blob_to_f64s(row.get_ref(1)?.as_blob()?)?,
-                            present: row.get_ref(2)?.as_blob()?.iter().map(|&b| b != 0).collect(),
-                            reports: row.get_ref(3)?.as_blob()?.to_vec(),
-                        };
-                        check(seq, &round)?;
-                        let inf: Inference = if migrate {
-                            let inf = engine.infer(&round);
-                            new_inferences.push((
-                                seq,
-                                serde_json::to_string(&inf)?,
-                                f64s_to_blob(&inf.q),
-                                inf.thresholds.first().copied().unwrap_or(f64::NAN),
-                            ));
-                            inf
-                        } else {
-                            serde_json::from_slice(row.get_ref(4)?.as_bytes()?)?
-                        };
-                        engine.observe(seq, &round, &inf)?;
-                        if migrate {
-                            inferred.insert(seq, (round, inf));
-                        }
-                        observed = seq + 1;
-                    }
-                    Ok(())
-                };
-            let mut fb_stmt = self.conn.prepare(
-                "SELECT r.seq, r.context, r.present, r.reports, r.q, f.truth, f.outcome,
-                        f.rounds_before
-                 FROM feedback f JOIN rounds r ON r.seq = f.seq
-                 ORDER BY f.labelled_order",
-            )?;
-            let mut fb_rows = fb_stmt.query([])?;
-            while let Some(row) = fb_rows.next()? {
-                let seq = row.get::<_, i64>(0)? as u64;
-                let before = row.get::<_, Option<i64>>(7)?.map_or(seq + 1, |b| b as u64);
-                advance(before, engine, &mut inferred, &mut new_inferences)?;
-                let truth = row.get_ref(5)?.as_blob()?.to_vec();
-                if truth.len() != l {
-                    return Err(StoreError::Corrupt(format!(
-                        "feedback for round {seq} has {} labels, not {l}",
-                        truth.len()
-                    )));
-                }
-                let (lr, outcome) = if migrate {
-                    let (round, inf) = inferred.remove(&seq).ok_or_else(|| {
-                        StoreError::Corrupt(format!(
-                            "feedback for round {seq} precedes the round in event order"
-                        ))
-                    })?;
-                    let o = engine.credit(&inf.signals, &inf.w_used, &truth, seq);
-                    new_outcomes.push((seq, serde_json::to_string(&o)?));
-                    let lr = LabelledRound {
-                        seq,
-                        round,
-                        truth,
-                        q: inf.q,
-                    };
-                    (lr, o)
-                } else {
-                    let round = Round {
-                        context: blob_to_f64s(row.get_ref(1)?.as_blob()?)?,
-                        present: row.get_ref(2)?.as_blob()?.iter().map(|&b| b != 0).collect(),
-                        reports: row.get_ref(3)?.as_blob()?.to_vec(),
-                    };
-                    check(seq, &round)?;
-                    let q = blob_to_f64s(row.get_ref(4)?.as_blob()?)?;
-                    if q.len() != l {
-                        return Err(StoreError::Corrupt(format!(
-                            "round {seq} has {} posteriors, not {l}",
-                            q.len()
-                        )));
-                    }
-                    let o: FeedbackOutcome = serde_json::from_slice(row.get_ref(6)?.as_bytes()?)?;
-                    (
-                        LabelledRound {
-                            seq,
-                            round,
-                            truth,
-                            q,
-                        },
-                        o,
-                    )
-                };
-                engine.apply(&lr, Some(&outcome))?;
-                labelled += 1;
+            let outcome = replay.feedback(FeedbackEvent {
+                seq,
+                truth: row.get_ref(5)?.as_blob()?.to_vec(),
+                stored,
+            })?;
+            if fresh {
+                out.outcomes.push((seq, outcome));
             }
-            advance(u64::MAX, engine, &mut inferred, &mut new_inferences)?;
+            out.labelled += 1;
         }
-        if migrate {
-            let tx = self
-                .conn
-                .transaction_with_behavior(TransactionBehavior::Immediate)?;
-            {
-                let mut up =
-                    tx.prepare_cached("UPDATE feedback SET outcome = ?2 WHERE seq = ?1")?;
-                for (seq, o) in &new_outcomes {
-                    up.execute(params![*seq as i64, o])?;
-                }
-                let mut det =
-                    tx.prepare_cached("UPDATE round_detail SET inference = ?2 WHERE seq = ?1")?;
-                let mut rq =
-                    tx.prepare_cached("UPDATE rounds SET q = ?2, threshold = ?3 WHERE seq = ?1")?;
-                for (seq, inf, q, t) in &new_inferences {
-                    det.execute(params![*seq as i64, inf])?;
-                    rq.execute(params![*seq as i64, q, *t])?;
-                }
-                if labelled > 0 {
-                    tx.execute(
-                        "UPDATE state SET reputations = ?1, labelled = ?2 WHERE id = 1",
-                        params![
-                            serde_json::to_string(engine.reputations())?,
-                            labelled as i64
-                        ],
-                    )?;
-                }
+        rounds.feed(u64::MAX, &mut replay, &mut out)?;
+        Ok(out)
+    }
+
+    /// After a replay under another method: the recomputed outcomes and inferences, the state
+    /// row and the method, in one transaction.
+    fn rewrite(
+        &mut self,
+        method: &str,
+        engine: &Engine,
+        replayed: &Replayed,
+    ) -> Result<(), StoreError> {
+        let tx = self
+            .conn
+            .transaction_with_behavior(TransactionBehavior::Immediate)?;
+        {
+            let mut up = tx.prepare_cached("UPDATE feedback SET outcome = ?2 WHERE seq = ?1")?;
+            for (seq, o) in &replayed.outcomes {
+                up.execute(params![*seq as i64, serde_json::to_string(o)?])?;
+            }
+            let mut det =
+                tx.prepare_cached("UPDATE round_detail SET inference = ?2 WHERE seq = ?1")?;
+            let mut rq =
+                tx.prepare_cached("UPDATE rounds SET q = ?2, threshold = ?3 WHERE seq = ?1")?;
+            for (seq, inf) in &replayed.inferences {
+                det.execute(params![*seq as i64, serde_json::to_string(inf)?])?;
+                rq.execute(params![
+                    *seq as i64,
+                    f64s_to_blob(&inf.q),
+                    inf.thresholds.first().copied().unwrap_or(f64::NAN)
+                ])?;
+            }
+            if replayed.labelled > 0 {
                 tx.execute(
-                    "INSERT INTO meta (key, value) VALUES ('method', ?1)
-                     ON CONFLICT(key) DO UPDATE SET value = excluded.value",
-                    [&method],
+                    "UPDATE state SET reputations = ?1, labelled = ?2 WHERE id = 1",
+                    params![
+                        serde_json::to_string(engine.reputations())?,
+                        replayed.labelled as i64
+                    ],
                 )?;
             }
-            tx.commit()?;
-        } else {
-            // The state row is written in the same transaction as each feedback: a rebuild that
-            // disagrees with it means the tables were edited or damaged, and serving would be
-            // wrong.
-            let state: Option<(String, i64)> = self
-                .conn
-                .query_row(
-                    "SELECT reputations, labelled FROM state WHERE id = 1",
-                    [],
-                    |r| Ok((r.get(0)?, r.get(1)?)),
-                )
-                .optional()?;
-            if let Some((w, lab)) = state {
+            tx.execute(
+                "INSERT INTO meta (key, value) VALUES ('method', ?1)
+                 ON CONFLICT(key) DO UPDATE SET value = excluded.value",
+                [method],
+            )?;
+        }
+        tx.commit()?;
+        Ok(())
+    }
+
+    /// The state row is written in the same transaction as each feedback: a rebuild that
+    /// disagrees with it means the tables were edited or damaged, and serving would be wrong.
+    fn check_state(&self, engine: &Engine, labelled: u64) -> Result<(), StoreError> {
+        let state: Option<(String, i64)> = self
+            .conn
+            .query_row(
+                "SELECT reputations, labelled FROM state WHERE id = 1",
+                [],
+                |r| Ok((r.get(0)?, r.get(1)?)),
+            )
+            .optional()?;
+        match state {
+            Some((w, lab)) => {
                 let w: Vec<f64> = serde_json::from_str(&w)?;
                 if lab as u64 != labelled || w.as_slice() != engine.reputations() {
                     return Err(StoreError::Corrupt(format!(
@@ -554,19 +588,13 @@ impl Store {
                         engine.reputations()
                     )));
                 }
-            } else if labelled != 0 {
-                return Err(StoreError::Corrupt("feedback without a state row".into()));
+                Ok(())
             }
-            if stored.is_none() {
-                self.set_method(&method)?;
+            None if labelled != 0 => {
+                Err(StoreError::Corrupt("feedback without a state row".into()))
             }
+            None => Ok(()),
         }
-        Ok(LoadReport {
-            rounds: rounds as u64,
-            labelled,
-            next_seq,
-            migrated_from: if migrate { stored } else { None },
-        })
     }
 
     /// Stores rounds in one transaction (group commit), numbered from `first_seq`. The first
@@ -839,12 +867,6 @@ impl Store {
             .conn
             .query_row("SELECT COUNT(*) FROM feedback", [], |r| r.get(0))?;
         Ok((r as u64, f as u64))
-    }
-
-    /// Cheap liveness check of the connection, for `/readyz`.
-    pub fn ping(&self) -> Result<(), StoreError> {
-        self.conn.query_row("SELECT 1", [], |_| Ok(()))?;
-        Ok(())
     }
 }
 

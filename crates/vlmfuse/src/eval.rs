@@ -475,6 +475,18 @@ fn report_json(run: &EvalRun, args: &EvalArgs) -> Value {
     })
 }
 
+/// Writes the table to stdout, ending its last line, and flushes it: what follows on stderr
+/// (`wrote ...`, `eval took ...`) then starts a line of its own wherever the two streams meet.
+fn print_report(text: &str) -> anyhow::Result<()> {
+    let mut out = std::io::stdout().lock();
+    out.write_all(text.as_bytes())?;
+    if !text.ends_with('\n') {
+        out.write_all(b"\n")?;
+    }
+    out.flush()?;
+    Ok(())
+}
+
 pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let started = Instant::now();
     let (mut cfg, ontology) = load_fusion_config(args.config.as_deref())?;
@@ -485,7 +497,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     }
     let run = evaluate(&cfg, &ontology, &records, &args)
         .with_context(|| args.rounds.display().to_string())?;
-    print!("{}", format_table(&run));
+    print_report(&format_table(&run))?;
     if let Some(path) = &args.emit_rounds {
         let at = || path.display().to_string();
         let f = File::create(path).with_context(at)?;
@@ -694,7 +706,7 @@ fn run_curve(
 ) -> anyhow::Result<()> {
     let c = evaluate_curve(cfg, ontology, records, args)
         .with_context(|| args.rounds.display().to_string())?;
-    print!("{}", format_curve(&c));
+    print_report(&format_curve(&c))?;
     if let Some(path) = &args.report {
         let text = serde_json::to_string_pretty(&curve_json(&c, args))?;
         std::fs::write(path, text).with_context(|| path.display().to_string())?;

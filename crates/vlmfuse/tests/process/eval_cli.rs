@@ -237,3 +237,37 @@ fn bad_rounds_files_name_the_line_and_problem() {
         .unwrap();
     assert!(String::from_utf8_lossy(&res.stderr).contains("unknown ablation"));
 }
+
+/// The table (stdout) and the timing (stderr) meet in one stream as on a terminal: the timing
+/// is a line of its own, not the tail of `Final reputations: ...`.
+#[test]
+fn the_timing_is_a_line_of_its_own() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("short.jsonl");
+    let text = std::fs::read_to_string(data()).unwrap();
+    std::fs::write(&f, text.lines().take(60).collect::<Vec<_>>().join("\n")).unwrap();
+    for extra in ["", "--curve 0,all"] {
+        let res = Command::new("sh")
+            .arg("-c")
+            .arg(format!(
+                "'{BIN}' eval '{}' --quiet {extra} 2>&1",
+                f.display()
+            ))
+            .output()
+            .unwrap();
+        assert!(res.status.success());
+        let out = String::from_utf8(res.stdout).unwrap();
+        let lines: Vec<&str> = out.lines().collect();
+        assert!(
+            lines.iter().any(|l| l.starts_with("Final reputations:")),
+            "{out}"
+        );
+        assert!(
+            lines
+                .iter()
+                .all(|l| !l.contains("eval took") || l.starts_with("eval took")),
+            "{out}"
+        );
+        assert!(lines.last().unwrap().starts_with("eval took"), "{out}");
+    }
+}

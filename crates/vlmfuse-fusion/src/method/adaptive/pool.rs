@@ -13,12 +13,11 @@
 //! a little less similar beats an old one, so decay does not empty the neighbourhood of weight.
 
 use crate::bank::{dot, Bank};
-use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 
 /// A neighbour: position, cosine, and the ranking weight it has for the entry (or query) whose
 /// list it is in.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Nb {
     pub pos: u32,
     pub sim: f64,
@@ -36,7 +35,7 @@ pub struct Scan {
     pub rev: Vec<(usize, f64)>,
 }
 
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone)]
 pub struct Pool {
     /// Contexts, presence and reports (its truths are unused: soft truths live here).
     pub(crate) bank: Bank,
@@ -60,7 +59,6 @@ pub struct Pool {
     /// `-inf`. A flat copy of `nb[j].last().sim`, so that a scan tests every entry without
     /// chasing one pointer per entry (the lists are separate allocations). Used only without
     /// decay, where the ranking weight is a monotone function of the cosine.
-    #[serde(default)]
     worst_sim: Vec<f64>,
 }
 
@@ -103,18 +101,6 @@ impl Pool {
         self.labelled.len()
     }
 
-    pub fn is_empty(&self) -> bool {
-        self.labelled.is_empty()
-    }
-
-    pub fn kmax(&self) -> usize {
-        self.kmax
-    }
-
-    pub fn bank(&self) -> &Bank {
-        &self.bank
-    }
-
     pub fn position(&self, seq: u64) -> Option<usize> {
         self.by_seq.get(&seq).copied()
     }
@@ -125,10 +111,6 @@ impl Pool {
 
     pub fn is_labelled(&self, pos: usize) -> bool {
         self.labelled[pos]
-    }
-
-    pub fn labelled_count(&self) -> usize {
-        self.len() - self.unlabelled.len()
     }
 
     /// Positions of the unlabelled entries, ascending.
@@ -236,6 +218,77 @@ impl Pool {
         v.sort_by(cmp);
     }
 
+    /// Whether a newcomer at clock `at` with cosine `sim` to entry `j` may enter `j`'s list. A
+    /// filter only: `insert` settles exact ties by age.
+    fn may_enter(&self, j: usize, sim: f64, at: u64) -> bool {
+        match self.worst(j) {
+            None => true,
+            Some(w) => {
+                let key = self.key(sim, at, self.clock[j]);
+                key > w.key || (key == w.key && sim >= w.sim)
+            }
+        }
+    }
+
+    /// [`Pool::scan`] with the cosines computed elsewhere (a batched GEMM): `sims[seq]` is the
+    /// round's cosine to the round numbered `seq`, for every `seq` the pool holds.
+    pub fn scan_by_seq(&self, sims: &[f64], at: u64) -> Scan {
+        let len = self.len();
+        let m = self.kmax.min(len);
+        let sim = |j: usize| sims[self.bank.seq(j) as usize];
+        let mut top: Vec<Nb> = Vec::new();
+        let mut rev: Vec<(usize, f64)> = Vec::new();
+        if self.half_life <= 0.0 && self.worst_sim.len() == len {
+            // Without decay, ranking by weight is ranking by cosine (see `scan`): the `m` best
+            // cosines are selected first and only their weights computed.
+            let mut best: Vec<(usize, f64)> = Vec::with_capacity(len);
+            for j in 0..len {
+                let s = sim(j);
+                if s >= self.worst_sim[j] {
+                    rev.push((j, s));
+                }
+                best.push((j, s));
+            }
+            if m > 0 {
+                let cmp = |a: &(usize, f64), b: &(usize, f64)| {
+                    b.1.total_cmp(&a.1)
+                        .then(self.bank.seq(a.0).cmp(&self.bank.seq(b.0)))
+                };
+                if best.len() > m {
+                    best.select_nth_unstable_by(m - 1, cmp);
+                    best.truncate(m);
+                }
+                top = best
+                    .into_iter()
+                    .map(|(j, s)| Nb {
+                        pos: j as u32,
+                        sim: s,
+                        key: self.key(s, self.clock[j], at),
+                    })
+                    .collect();
+                self.rank(&mut top, m);
+            }
+        } else {
+            for j in 0..len {
+                let s = sim(j);
+                top.push(Nb {
+                    pos: j as u32,
+                    sim: s,
+                    key: self.key(s, self.clock[j], at),
+                });
+                if self.may_enter(j, s, at) {
+                    rev.push((j, s));
+                }
+            }
+            self.rank(&mut top, m);
+        }
+        Scan {
+            pool_len: len,
+            top,
+            rev,
+        }
+    }
+
     /// One pass over the pool for a round with context `x` (unit norm) observed at clock `at`:
     /// its `kmax` best neighbours and the entries whose list it may enter. Large pools use the
     /// bank's f32 first pass with its rigorous bound: only entries whose weight could reach the
@@ -245,14 +298,7 @@ impl Pool {
         let m = self.kmax.min(len);
         let mut top: Vec<Nb> = Vec::new();
         let mut rev: Vec<(usize, f64)> = Vec::new();
-        let newcomer_beats = |j: usize, sim: f64| match self.worst(j) {
-            None => true,
-            Some(w) => {
-                let key = self.key(sim, at, self.clock[j]);
-                // A filter only: `insert` settles exact ties by age.
-                key > w.key || (key == w.key && sim >= w.sim)
-            }
-        };
+        let newcomer_beats = |j: usize, sim: f64| self.may_enter(j, sim, at);
         let by_sim = self.half_life <= 0.0 && self.worst_sim.len() == len;
         match self.bank.approx_with_bounds(x) {
             Some((approx, bound)) if by_sim => {
@@ -481,6 +527,39 @@ mod tests {
             let got: Vec<u32> = pool.neighbours(j).iter().map(|e| e.pos).collect();
             assert_eq!(got, want, "entry {j}");
         }
+    }
+
+    /// Scanning with the cosines given (by `seq`) builds the same pool as scanning.
+    fn check_given_cosines(count: usize, half_life: f64) {
+        let mut state = 5u64;
+        let mut scanned = Pool::new(2, 1, 6, 4.0, half_life);
+        let mut given = Pool::new(2, 1, 6, 4.0, half_life);
+        let mut ctx: Vec<Vec<f64>> = Vec::new();
+        for s in 0..count as u64 {
+            let x = unit(&(0..5).map(|_| rnd(&mut state)).collect::<Vec<_>>());
+            let clock = s / 4;
+            // Sequence numbers with gaps, as in a store where some rounds never joined.
+            let seq = 3 * s + 1;
+            let mut sims = vec![f64::NAN; seq as usize];
+            for (j, c) in ctx.iter().enumerate() {
+                sims[3 * j + 1] = dot(&x, c);
+            }
+            let a = scanned.scan(&x, clock);
+            let b = given.scan_by_seq(&sims, clock);
+            assert_eq!(a.top, b.top, "round {s}");
+            scanned.insert(seq, &x, &[true, true], &[0, 1], &[0.5], false, clock, &a);
+            given.insert(seq, &x, &[true, true], &[0, 1], &[0.5], false, clock, &b);
+            ctx.push(x);
+        }
+        for j in 0..count {
+            assert_eq!(scanned.neighbours(j), given.neighbours(j), "entry {j}");
+        }
+    }
+
+    #[test]
+    fn given_cosines_scan_as_the_pool_does() {
+        check_given_cosines(300, 0.0);
+        check_given_cosines(300, 25.0);
     }
 
     #[test]

@@ -18,7 +18,6 @@
 //! per step, and its result depends only on the rounds pushed, in order.
 
 use crate::signals::sigmoid;
-use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 
 /// Inputs are clipped to this magnitude before they enter a fit: beyond it the sigmoid is 0 or 1
@@ -30,7 +29,7 @@ pub type Params = [f64; 3];
 
 const IDENTITY: Params = [1.0, 1.0, 0.0];
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Calibrator {
     l: usize,
     window: usize,
@@ -155,25 +154,6 @@ impl Calibrator {
         }
     }
 
-    /// Rounds in the window.
-    pub fn len(&self) -> usize {
-        self.rounds.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.rounds.is_empty()
-    }
-
-    /// `(a, c, b)` of label `k`.
-    pub fn params(&self, k: usize) -> Params {
-        self.per_label[k]
-    }
-
-    /// The pooled `(a, c, b)` every label is shrunk toward.
-    pub fn pooled(&self) -> Params {
-        self.pooled
-    }
-
     /// The calibrated probability of label `k` for evidence `e` and prior log-odds `p`.
     #[inline]
     pub fn apply(&self, k: usize, e: f64, p: f64) -> f64 {
@@ -228,6 +208,18 @@ impl Calibrator {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    impl Calibrator {
+        /// Rounds in the window.
+        fn len(&self) -> usize {
+            self.rounds.len()
+        }
+
+        /// `(a, c, b)` of label `k`.
+        fn params(&self, k: usize) -> Params {
+            self.per_label[k]
+        }
+    }
 
     fn lcg(s: &mut u64) -> f64 {
         *s = s
