@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Generates the hard rounds files (SPEC section 8, JSON Lines) for the learning-curve and drift
+"""Generates the hard rounds files (PAPER-METHOD.md §8, JSON Lines) for the learning-curve and drift
 targets of issue 9. Deterministic: the same command writes the same bytes.
 
     python3 tests/data/make_hard_rounds.py hard  > tests/data/rounds_hard.jsonl

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Generates tests/data/rounds.jsonl: a realistic, deterministic rounds file (SPEC section 8).
+"""Generates tests/data/rounds.jsonl: a realistic, deterministic rounds file (PAPER-METHOD.md §8).
 
 Six driving scenes give the contexts cluster structure (a 64-d "scene embedding": scene centre +
 noise, unit-normalised by the engine). Ground truth comes from per-scene label rates. Three

@@ -66,7 +66,7 @@ pub struct Ontology {
     index: HashMap<String, usize>,
 }
 
-/// The paper's 14 labels in SPEC order (ids 0..13).
+/// The paper's 14 labels in docs/PAPER-METHOD.md order (ids 0..13).
 pub const PAPER_LABELS: [&str; 14] = [
     "turn_left",
     "turn_right",
@@ -160,7 +160,7 @@ impl Ontology {
         Self::new(labels).expect("the paper's labels are a valid ontology")
     }
 
-    /// The paper's 14 labels (SPEC §1): ids and display names, no descriptions. The service's
+    /// The paper's 14 labels (PAPER-METHOD.md §1): ids and display names, no descriptions. The service's
     /// default (`config/default.toml`).
     pub fn paper() -> Self {
         Self::from_table(false)

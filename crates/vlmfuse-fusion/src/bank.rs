@@ -1,4 +1,4 @@
-//! The labelled history `B` and its exact nearest-neighbour search (SPEC §2).
+//! The labelled history `B` and its exact nearest-neighbour search (PAPER-METHOD.md §2).
 //!
 //! Contexts are kept in f64 so that a similarity computed here equals, to rounding, the one an
 //! independent f64 implementation computes: the posteriors must agree to 1e-9, and f32 storage

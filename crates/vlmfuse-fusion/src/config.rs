@@ -1,21 +1,21 @@
-//! Every number SPEC.md names is a field here rather than a constant in the code, so that the
+//! Every number docs/PAPER-METHOD.md names is a field here rather than a constant in the code, so that the
 //! service, `eval` and the tests all read the same defaults and a deployment can change them.
 
 use crate::method::adaptive::AdaptiveConfig;
 use serde::{Deserialize, Serialize};
 
-/// Which fusion method the engine runs. `paper` is SPEC.md to the letter; `adaptive` is the
+/// Which fusion method the engine runs. `paper` is docs/PAPER-METHOD.md to the letter; `adaptive` is the
 /// semi-supervised, calibrated, drift-aware method of docs/METHOD.md. Both keep the same rounds,
 /// so a history made under one replays under the other.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Method {
-    /// SPEC.md §1–7 exactly: labelled rounds only, reputation-weighted LLRs that sum to one.
+    /// docs/PAPER-METHOD.md §1–7 exactly: labelled rounds only, reputation-weighted LLRs that sum to one.
     Paper,
     /// docs/METHOD.md: unlabelled rounds teach through a Dawid–Skene E-step, hierarchical
     /// reliabilities, Platt calibration, age decay and fixed-share reputations. The default: it
     /// meets issue 9's targets (no worse than majority vote from the first round, calibrated,
-    /// drift-aware) where SPEC's method starts with every label on.
+    /// drift-aware) where the paper method starts with every label on.
     #[default]
     Adaptive,
 }
@@ -45,7 +45,7 @@ impl std::fmt::Display for Method {
     }
 }
 
-/// Which parts of the method are switched off (SPEC §6). All `false` is the full method.
+/// Which parts of the method are switched off (PAPER-METHOD.md §6). All `false` is the full method.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Ablations {
@@ -81,7 +81,7 @@ impl Ablations {
     }
 }
 
-/// How the decision threshold is fitted (SPEC §3).
+/// How the decision threshold is fitted (PAPER-METHOD.md §3).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum ThresholdMode {
@@ -92,11 +92,11 @@ pub enum ThresholdMode {
     PerLabel,
 }
 
-/// The fusion's parameters. Field names follow SPEC.md's symbols.
+/// The fusion's parameters. Field names follow docs/PAPER-METHOD.md's symbols.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct FusionConfig {
-    /// Neighbours used for the reliabilities `theta` (SPEC §2, `K`).
+    /// Neighbours used for the reliabilities `theta` (PAPER-METHOD.md §2, `K`).
     pub k: usize,
     /// Kernel exponent `tau` in `max(0, cos)^tau`.
     pub tau: f64,
@@ -105,7 +105,7 @@ pub struct FusionConfig {
     pub beta0: f64,
     /// Neighbours used for the contextual prior `pi` (`K_prior`).
     pub k_prior: usize,
-    /// Beta prior of the contextual prior `pi` (SPEC: Beta(1,1)).
+    /// Beta prior of the contextual prior `pi` (PAPER-METHOD.md: Beta(1,1)).
     pub prior_alpha: f64,
     pub prior_beta: f64,
     /// Probability clip for every log (`eps`).
@@ -141,14 +141,14 @@ pub struct FusionConfig {
     /// Context dimension; `None` takes it from the first round the engine stores.
     pub dim: Option<usize>,
     pub ablations: Ablations,
-    /// The fusion method (`paper` keeps SPEC exact; `adaptive` is docs/METHOD.md).
+    /// The fusion method (`paper` keeps docs/PAPER-METHOD.md exact; `adaptive` is docs/METHOD.md).
     pub method: Method,
     /// The `adaptive` method's parameters (ignored under `paper`).
     pub adaptive: AdaptiveConfig,
 }
 
 impl FusionConfig {
-    /// SPEC's defaults with `method = "paper"`: SPEC.md to the letter.
+    /// The paper method's defaults with `method = "paper"`: docs/PAPER-METHOD.md to the letter.
     pub fn paper() -> Self {
         Self {
             method: Method::Paper,

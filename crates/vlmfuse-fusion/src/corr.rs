@@ -1,4 +1,4 @@
-//! Pairwise error correlations `rho_ijk` over a sliding window (SPEC §3).
+//! Pairwise error correlations `rho_ijk` over a sliding window (PAPER-METHOD.md §3).
 //!
 //! Each reporter pair keeps its own window of the last `W` labelled rounds in which *both* were
 //! present, plus the running 2x2 counts of `(e_i, e_j)` per label, so reading `rho` is O(1) and

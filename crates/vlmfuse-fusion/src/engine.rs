@@ -18,7 +18,7 @@ use crate::threshold::ThresholdFitter;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
 
-/// One line of SPEC §8: the data exchange format of `eval` and `POST /v1/fuse`.
+/// One line of docs/PAPER-METHOD.md §8: the data exchange format of `eval` and `POST /v1/fuse`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RoundRecord {
     #[serde(default)]
@@ -104,7 +104,7 @@ pub struct FeedbackOutcome {
     pub prior_logit: Vec<f64>,
 }
 
-/// Per-reporter statistics kept across rounds (SPEC §4).
+/// Per-reporter statistics kept across rounds (PAPER-METHOD.md §4).
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct ReporterStats {
     /// Labelled rounds in which the reporter was present.
@@ -231,7 +231,7 @@ impl Engine {
     pub fn labelled(&self) -> u64 {
         self.labelled
     }
-    /// The contexts the method searches: SPEC's bank of labelled rounds under `paper`, the pool
+    /// The contexts the method searches: the paper method's bank of labelled rounds under `paper`, the pool
     /// of every observed round under `adaptive` (whose truths there are unused: the pool keeps
     /// soft truths).
     pub fn bank(&self) -> &Bank {
@@ -290,7 +290,7 @@ impl Engine {
         Ok(scaled.iter().map(|v| v / norm).collect())
     }
 
-    /// Validates a SPEC §8 record into a round and its optional truth. Nothing is changed.
+    /// Validates a docs/PAPER-METHOD.md §8 record into a round and its optional truth. Nothing is changed.
     pub fn parse(&self, rec: &RoundRecord) -> Result<(Round, Option<Vec<u8>>), FusionError> {
         let context = self.normalise_context(&rec.context)?;
         let n = self.reporters.len();
@@ -356,7 +356,7 @@ impl Engine {
         round.present.len() == n && round.reports.len() == n * l
     }
 
-    /// Infers a round against the state as it stands (SPEC §2–3).
+    /// Infers a round against the state as it stands (PAPER-METHOD.md §2–3).
     pub fn infer(&self, round: &Round) -> Inference {
         self.method.infer(&self.ctx(), round, None)
     }
@@ -414,7 +414,7 @@ impl Engine {
     }
 
     /// Credits a round from its stored signals and computes the reputation update against the
-    /// CURRENT reputations (SPEC §5). Pure: the state is changed only by [`Engine::apply`].
+    /// CURRENT reputations (PAPER-METHOD.md §5). Pure: the state is changed only by [`Engine::apply`].
     pub fn credit(
         &self,
         signals: &Signals,

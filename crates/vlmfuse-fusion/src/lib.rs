@@ -1,4 +1,4 @@
-//! The fusion method of SPEC.md §1–7, with no I/O: Shapley-credited, context-aware
+//! The fusion method of docs/PAPER-METHOD.md §1–7, with no I/O: Shapley-credited, context-aware
 //! Dawid–Skene with an agreement guardrail, and the `adaptive` method of docs/METHOD.md.
 //! Everything here is deterministic: the engine is a pure function of its events, so the
 //! service persists the events and rebuilds the engine by replaying them ([`replay`]), as `eval`
@@ -27,6 +27,6 @@ pub use engine::{
 pub use error::FusionError;
 pub use method::adaptive::{AdaptiveConfig, Guardrail, Reputation, Scan, SoftTruth, WeightNorm};
 pub use ontology::{Label, Ontology};
-/// SPEC §5's multiplicative update, [`reputation::multiplicative`].
+/// docs/PAPER-METHOD.md §5's multiplicative update, [`reputation::multiplicative`].
 pub use reputation::{fixed_share, multiplicative as reputation_update};
 pub use signals::{Credit, ShapleyMethod, Signals};

@@ -1,4 +1,4 @@
-//! SPEC §7 metrics. A label with no true and no predicted positive scores F1 = 1 (tables say so).
+//! docs/PAPER-METHOD.md §7 metrics. A label with no true and no predicted positive scores F1 = 1 (tables say so).
 
 use crate::signals::clip;
 use crate::threshold::jaccard;

@@ -6,7 +6,7 @@
 //! (stored inferences and outcomes, or fresh ones when the configured method changed), and
 //! `eval` runs the paper's protocol with it.
 //!
-//! The protocol (SPEC §9, `eval`, [`replay()`]): rounds in file order, each first predicted with
+//! The protocol (PAPER-METHOD.md §9, `eval`, [`replay()`]): rounds in file order, each first predicted with
 //! the state as it stands and then learned from if it has truth. The first `split` share is
 //! history and is not scored. With `batch_knn`, the similarities of a block of upcoming rounds to
 //! every earlier round are one GEMM (faer) instead of one dot product per pair; each round then
@@ -197,7 +197,7 @@ pub struct LineError {
     pub message: String,
 }
 
-/// Every reporter name that appears in the records, sorted (SPEC §9).
+/// Every reporter name that appears in the records, sorted (PAPER-METHOD.md §9).
 pub fn reporters_of(records: &[(usize, RoundRecord)]) -> Result<Vec<String>, LineError> {
     let mut names = BTreeSet::new();
     for (line, r) in records {

@@ -1,11 +1,11 @@
-//! The reputation updates: SPEC §5's multiplicative update (what `method = "paper"` runs), and the
+//! The reputation updates: docs/PAPER-METHOD.md §5's multiplicative update (what `method = "paper"` runs), and the
 //! parts the `adaptive` method composes (docs/METHOD.md §4): credits divided by a running credit
 //! scale, a discounted mean credit per reporter, fixed-share mixing. Pure functions of their
 //! inputs; [`CreditMemory`] is the little state the discounted update carries between rounds.
 
 use crate::method::adaptive::pool::decay;
 
-/// SPEC's `w_i <- w_i exp(eta phi_i) / sum_j w_j exp(eta phi_j)`. The exponent is shifted by its
+/// The paper method's `w_i <- w_i exp(eta phi_i) / sum_j w_j exp(eta phi_j)`. The exponent is shifted by its
 /// maximum, which cancels in the ratio and keeps `exp` from overflowing on a huge credit.
 pub fn multiplicative(w: &[f64], phi: &[f64], eta: f64) -> Vec<f64> {
     let m = phi

@@ -1,6 +1,6 @@
 //! What a round computed at inference time, and everything derived from it afterwards.
 //!
-//! SPEC §5 credits a model "for what it contributed when it spoke": feedback may arrive much
+//! docs/PAPER-METHOD.md §5 credits a model "for what it contributed when it spoke": feedback may arrive much
 //! later, when the bank and the correlations have moved on. So inference freezes the reliabilities,
 //! correlations, prior, reports and weights of the coalition in a [`Signals`], and the posterior,
 //! every coalition's value and the Shapley credit are pure functions of it.
@@ -89,7 +89,7 @@ impl Signals {
         self.coalition.len()
     }
 
-    /// `lambda_ik` for every member and label (SPEC §3), from clipped reliabilities.
+    /// `lambda_ik` for every member and label (PAPER-METHOD.md §3), from clipped reliabilities.
     pub fn llr(&self) -> Vec<f64> {
         let eps = self.eps;
         self.reports
@@ -152,7 +152,7 @@ impl Signals {
         out
     }
 
-    /// The coalition posterior `q^(C)` per label, clipped (SPEC §4). The empty coalition gives
+    /// The coalition posterior `q^(C)` per label, clipped (PAPER-METHOD.md §4). The empty coalition gives
     /// the prior itself (clipped), not `sigmoid(logit(pi))`, which could differ by an ulp.
     pub fn posterior(
         &self,

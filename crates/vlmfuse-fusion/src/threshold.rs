@@ -1,4 +1,4 @@
-//! The decision threshold (SPEC §3): the grid point that maximises the mean per-round Jaccard
+//! The decision threshold (PAPER-METHOD.md §3): the grid point that maximises the mean per-round Jaccard
 //! index over the posteriors that the last `threshold_window` labelled rounds got at inference.
 //!
 //! Refitting after every labelled round must stay cheap, so each round contributes a per-grid-point
@@ -246,7 +246,7 @@ pub fn jaccard(pred: &[u8], truth: &[u8]) -> f64 {
 mod tests {
     use super::*;
 
-    /// A direct, slow implementation of the SPEC rule to compare against.
+    /// A direct, slow implementation of the docs/PAPER-METHOD.md rule to compare against.
     fn brute(cfg: &FusionConfig, window: &[(Vec<f64>, Vec<u8>)]) -> f64 {
         let grid = cfg.threshold_grid();
         let scores: Vec<f64> = grid

@@ -149,7 +149,7 @@ fn with_no_label_it_votes_instead_of_switching_every_label_on() {
             assert_eq!(inf.pred[k] != 0, vote, "label {k}");
         }
     }
-    // SPEC's method on the same fresh state puts every label on (q = pi = 0.5 >= 0.5).
+    // The paper method's method on the same fresh state puts every label on (q = pi = 0.5 >= 0.5).
     let (p, pinfs) = run(&FusionConfig::paper(), &events[..1]);
     assert_eq!(p.labelled(), 0);
     assert!(pinfs[0].pred.iter().all(|&b| b == 1));

@@ -1,6 +1,6 @@
-//! Vectors computed by hand from SPEC §2–4 (the arithmetic is in the comments).
+//! Vectors computed by hand from docs/PAPER-METHOD.md §2–4 (the arithmetic is in the comments).
 
-// Indices mirror the formulas of SPEC on purpose: a naive transcription is the point.
+// Indices mirror the formulas of docs/PAPER-METHOD.md on purpose: a naive transcription is the point.
 #![allow(clippy::needless_range_loop, clippy::type_complexity)]
 
 mod common;
@@ -95,7 +95,7 @@ fn guardrail_divides_agreeing_llrs_by_one_plus_rho() {
     // rho(brake) from cells 11=1.5, 00=10=01=0.5: (0.75 - 0.25)/sqrt(2*1*2*1) = 0.25.
     // rho(stop): both right, cells 00 = 1.5, others 0.5: (0.5*1.5 - 0.5*0.5)/2 = 0.25 as well:
     // the phi coefficient is symmetric in flipping both errors, so agreeing while right counts
-    // as correlation too (SPEC's formula as written).
+    // as correlation too (the paper method's formula as written).
     let (round, _) = e
         .parse(&rec(
             vec![1.0, 0.0],

@@ -1,8 +1,8 @@
-//! The method's invariants (SPEC §4 and the brief): Shapley efficiency, symmetry and the null
+//! The method's invariants (PAPER-METHOD.md §4 and the brief): Shapley efficiency, symmetry and the null
 //! player; weights summing to 1; the empty bank giving no signal; each ablation switching off
 //! exactly its part; and validation that changes nothing.
 
-// Indices mirror the formulas of SPEC on purpose: a naive transcription is the point.
+// Indices mirror the formulas of docs/PAPER-METHOD.md on purpose: a naive transcription is the point.
 #![allow(clippy::needless_range_loop, clippy::type_complexity)]
 
 mod common;

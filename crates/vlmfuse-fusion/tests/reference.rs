@@ -1,8 +1,8 @@
-//! An independent, deliberately naive implementation of SPEC.md §2–4, written straight from the
+//! An independent, deliberately naive implementation of docs/PAPER-METHOD.md §2–4, written straight from the
 //! formulas (full sorts, windows recomputed from scratch, Shapley by enumerating permutations,
 //! threshold by brute force), against which the engine must agree to 1e-9.
 
-// Indices mirror the formulas of SPEC on purpose: a naive transcription is the point.
+// Indices mirror the formulas of docs/PAPER-METHOD.md on purpose: a naive transcription is the point.
 #![allow(clippy::needless_range_loop, clippy::type_complexity)]
 
 mod common;
@@ -513,9 +513,9 @@ fn one_reporter_works() {
     );
 }
 
-/// The adaptive method with every extension off reduces to SPEC's: same posteriors,
+/// The adaptive method with every extension off reduces to the paper method's: same posteriors,
 /// thresholds, credits and reputations as the independent reference, on rounds that are
-/// labelled (15% are not, and with `unlabelled_weight = 0` they teach nothing, as in SPEC).
+/// labelled (15% are not, and with `unlabelled_weight = 0` they teach nothing, as in docs/PAPER-METHOD.md).
 #[test]
 fn adaptive_with_every_extension_off_is_the_paper_method() {
     let paper = FusionConfig {

@@ -297,7 +297,7 @@ fn a_data_directory_replays_under_the_other_method() {
     assert_eq!(again.reputations(), native.reputations());
     drop(store);
 
-    // And back: under `paper` it is SPEC's engine again.
+    // And back: under `paper` it is the paper method's engine again.
     let mut store = Store::open(dir.path()).unwrap();
     let mut back = engine_with(Paper);
     let rep = store.load_engine(&mut back).unwrap();

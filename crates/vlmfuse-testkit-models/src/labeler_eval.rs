@@ -95,7 +95,7 @@ pub fn to_mask(ontology: &Ontology, ids: &[String]) -> Result<Vec<bool>, Ontolog
     Ok(m)
 }
 
-/// Micro- and macro-F1 (SPEC section 7: a label with no true and no predicted positive scores
+/// Micro- and macro-F1 (PAPER-METHOD.md §7: a label with no true and no predicted positive scores
 /// F1 = 1 in the macro mean).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct F1 {

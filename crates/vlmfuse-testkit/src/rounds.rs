@@ -1,4 +1,4 @@
-//! SPEC §8 rounds for tests: a generator with learnable structure, and JSON Lines files.
+//! docs/PAPER-METHOD.md §8 rounds for tests: a generator with learnable structure, and JSON Lines files.
 
 use crate::rng::Lcg;
 use serde_json::Value;
@@ -9,7 +9,7 @@ pub use vlmfuse_core::PAPER_LABELS as LABELS;
 
 pub const REPORTERS: [&str; 3] = ["vlaad", "videollama2", "videollava"];
 
-/// A SPEC §8 rounds stream with structure the method can learn: contexts cluster around a few
+/// A docs/PAPER-METHOD.md §8 rounds stream with structure the method can learn: contexts cluster around a few
 /// scene centres, each scene has typical labels, and each reporter is reliable in some scenes
 /// and noisy in others. About 1 round in 8 is unlabelled and 1 in 10 misses a reporter.
 pub fn generate_rounds(n: usize, d: usize, seed: u64) -> Vec<Value> {

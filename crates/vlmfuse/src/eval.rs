@@ -1,5 +1,5 @@
-//! `vlmfuse eval`: the paper's protocol over a rounds file (SPEC §9), with the metrics table of
-//! SPEC §7 for the method, each requested ablation and the baselines; `--labelled N` hides the
+//! `vlmfuse eval`: the paper's protocol over a rounds file (PAPER-METHOD.md §9), with the metrics table of
+//! docs/PAPER-METHOD.md §7 for the method, each requested ablation and the baselines; `--labelled N` hides the
 //! truth of all but N history rounds, and `--curve` measures the learning curve of both methods.
 
 use crate::plots;
@@ -75,7 +75,7 @@ fn parse_method(s: &str) -> Result<Method, String> {
 
 #[derive(Args, Debug, Clone)]
 pub struct EvalArgs {
-    /// Rounds file: JSON Lines, one SPEC §8 round a line.
+    /// Rounds file: JSON Lines, one docs/PAPER-METHOD.md §8 round a line.
     pub rounds: PathBuf,
     /// Share of rounds (from the start) that is history and not scored.
     #[arg(long, default_value_t = 0.7, value_parser = parse_split)]
@@ -87,7 +87,7 @@ pub struct EvalArgs {
     /// no-context, or `all`.
     #[arg(long = "ablation", value_name = "NAME")]
     pub ablations: Vec<String>,
-    /// Write one line per round of the full method (SPEC §9 fields).
+    /// Write one line per round of the full method (PAPER-METHOD.md §9 fields).
     #[arg(long, value_name = "OUT.jsonl")]
     pub emit_rounds: Option<PathBuf>,
     /// Write the table as JSON.
@@ -102,7 +102,7 @@ pub struct EvalArgs {
     /// Compute similarities one query at a time instead of batched GEMMs (for comparison).
     #[arg(long)]
     pub per_query_knn: bool,
-    /// Fusion method: `adaptive` (docs/METHOD.md) or `paper` (SPEC.md exactly). Without it,
+    /// Fusion method: `adaptive` (docs/METHOD.md) or `paper` (PAPER-METHOD.md exactly). Without it,
     /// the config file's `[fusion] method`, else `adaptive`.
     #[arg(long, value_parser = parse_method)]
     pub method: Option<Method>,
@@ -430,7 +430,7 @@ fn map_of(names: &[String], v: &[f64]) -> Value {
     )
 }
 
-/// One SPEC §9 `--emit-rounds` line.
+/// One docs/PAPER-METHOD.md §9 `--emit-rounds` line.
 pub fn emit_line(engine: &Engine, o: &RoundOutcome) -> Value {
     let ont = engine.ontology();
     let labels: Vec<String> = ont.labels().iter().map(|l| l.id.clone()).collect();

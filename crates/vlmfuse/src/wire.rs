@@ -35,7 +35,7 @@ pub struct FuseOut {
     pub id: Option<String>,
     pub labels: Vec<String>,
     pub posteriors: Ordered<f64>,
-    /// The fusion method that produced the posteriors: `paper` (SPEC) or `adaptive`
+    /// The fusion method that produced the posteriors: `paper` (PAPER-METHOD.md) or `adaptive`
     /// (docs/METHOD.md).
     pub method: &'static str,
     /// How the labels were decided: `model` (posterior against the threshold) or

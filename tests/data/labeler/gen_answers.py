@@ -290,7 +290,7 @@ RATIONALE_FACTS = {
 }
 
 
-# The ontology's order (SPEC section 1); labels are written in this order.
+# The ontology's order (PAPER-METHOD.md §1); labels are written in this order.
 ONTOLOGY = ["turn_left", "turn_right", "brake", "accelerate", "stop", "traffic_light_ahead",
             "junction_ahead", "pedestrian_crossing_ahead", "merge", "maintain_safe_distance",
             "check_blind_spot", "adjust_speed_due_to_weather", "yield_to_traffic", "drive_as_normal"]

@@ -3,7 +3,7 @@
 //! read-only view of that state ([`Ctx`]); each method owns the rest of its state, and none reads
 //! another's.
 //!
-//! - [`paper::Paper`]: SPEC.md §1–7 exactly (labelled bank, correlation window, threshold fit).
+//! - [`paper::Paper`]: docs/PAPER-METHOD.md §1–7 exactly (labelled bank, correlation window, threshold fit).
 //! - [`adaptive::Adaptive`]: docs/METHOD.md (pool of every observed round with soft truths,
 //!   calibration, vote fallback, drift-aware reputations).
 
@@ -55,7 +55,7 @@ impl MethodState {
         }
     }
 
-    /// The contexts the method searches: SPEC's labelled bank, or the adaptive pool.
+    /// The contexts the method searches: the paper method's labelled bank, or the adaptive pool.
     pub fn bank(&self) -> &Bank {
         match self {
             MethodState::Paper(p) => p.bank(),

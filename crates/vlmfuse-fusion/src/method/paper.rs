@@ -1,4 +1,4 @@
-//! `method = "paper"`: SPEC.md §1–7 to the letter. Its state is the labelled bank `B`, the
+//! `method = "paper"`: docs/PAPER-METHOD.md §1–7 to the letter. Its state is the labelled bank `B`, the
 //! correlation window and the threshold fitter; unlabelled rounds change nothing.
 
 use super::Ctx;
@@ -37,7 +37,7 @@ impl Paper {
         &self.threshold
     }
 
-    /// Infers a round (SPEC §2–3). `sims`, when given, are the round's similarities to earlier
+    /// Infers a round (PAPER-METHOD.md §2–3). `sims`, when given, are the round's similarities to earlier
     /// rounds indexed by `seq` (a batched GEMM's row); else the bank is searched.
     pub fn infer(&self, cx: &Ctx, round: &Round, sims: Option<&[f64]>) -> Inference {
         let cfg = cx.cfg;
@@ -76,7 +76,7 @@ impl Paper {
         let p = coalition.len();
         let mut theta_pos = vec![0.5; p * l];
         let mut theta_neg = vec![0.5; p * l];
-        // Empty bank: SPEC fixes theta and pi at 0.5 (no signal), whatever the Beta priors.
+        // Empty bank: docs/PAPER-METHOD.md fixes theta and pi at 0.5 (no signal), whatever the Beta priors.
         let mut prior = vec![0.5; l];
         if !bank.is_empty() {
             // Sums a+, b+, a-, b- per member and label, and kernel mass and positives for pi.

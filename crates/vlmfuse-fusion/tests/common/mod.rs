@@ -1,4 +1,4 @@
-//! Helpers shared by the fusion test files: the test kit's generator and a builder for SPEC §8
+//! Helpers shared by the fusion test files: the test kit's generator and a builder for docs/PAPER-METHOD.md §8
 //! records.
 
 #![allow(dead_code)]

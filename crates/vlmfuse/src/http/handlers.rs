@@ -35,7 +35,7 @@ pub fn answer_response(a: crate::service::Answer) -> Response {
     resp
 }
 
-/// `POST /v1/fuse`: one SPEC §8 round (without truth) or `{"rounds": [...]}`.
+/// `POST /v1/fuse`: one docs/PAPER-METHOD.md §8 round (without truth) or `{"rounds": [...]}`.
 pub async fn fuse(
     State(st): State<AppState>,
     headers: HeaderMap,

@@ -1,4 +1,4 @@
-//! The HTTP edge of `vlmfuse serve` (SPEC §9): the route table, its middleware (authentication,
+//! The HTTP edge of `vlmfuse serve` (PAPER-METHOD.md §9): the route table, its middleware (authentication,
 //! the concurrency limit, timeouts, metrics) and [`app`], which builds the router over a
 //! [`Service`]. Handlers read the request and call the service; `error` turns failures into
 //! statuses, in one place.

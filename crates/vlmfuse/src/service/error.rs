@@ -9,7 +9,7 @@ use vlmfuse_store::StoreError;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ServiceError {
-    /// The round or labels break SPEC §8 (unknown reporter or label, dimension, NaN, ...), or
+    /// The round or labels break docs/PAPER-METHOD.md §8 (unknown reporter or label, dimension, NaN, ...), or
     /// (`FusionError::Config`) the engine's configuration is unusable.
     #[error("{0}")]
     Fusion(#[from] FusionError),

@@ -86,7 +86,7 @@ fn take_request_id(body: &mut Value) -> Result<Option<String>, ServiceError> {
 }
 
 impl Service {
-    /// `POST /v1/fuse`: one SPEC §8 round (without truth) or `{"rounds": [...]}`, with an
+    /// `POST /v1/fuse`: one docs/PAPER-METHOD.md §8 round (without truth) or `{"rounds": [...]}`, with an
     /// optional idempotency key (`key` from the header, or the body's `request_id`).
     pub async fn fuse(&self, mut body: Value, key: Option<&str>) -> Result<Answer, ServiceError> {
         let delay = self.hooks.fuse_delay();

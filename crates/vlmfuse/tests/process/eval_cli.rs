@@ -1,4 +1,4 @@
-//! `vlmfuse eval` end to end on the shipped rounds file (SPEC §9), and its errors on bad files.
+//! `vlmfuse eval` end to end on the shipped rounds file (PAPER-METHOD.md §9), and its errors on bad files.
 
 use crate::support::BIN;
 use serde_json::Value;

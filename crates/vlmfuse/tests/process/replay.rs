@@ -1,5 +1,5 @@
 //! The service (the real binary) against `vlmfuse eval`: replaying a rounds file through `/v1/fuse` then
-//! `/v1/feedback` must give eval's posteriors and reputations (SPEC §9's sequential protocol),
+//! `/v1/feedback` must give eval's posteriors and reputations (PAPER-METHOD.md §9's sequential protocol),
 //! and a `kill -9` in the middle followed by a restart must lose nothing acknowledged and continue
 //! with bit-identical numbers.
 

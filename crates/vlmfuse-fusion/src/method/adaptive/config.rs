@@ -1,6 +1,6 @@
 //! The `adaptive` method's parameters (docs/METHOD.md names each symbol). Every switch has an
 //! "off" value, and with all of them off (see [`AdaptiveConfig::paper_equivalent`]) the method
-//! is SPEC's exactly, which the invariant tests check.
+//! is the paper method's exactly, which the invariant tests check.
 
 use serde::{Deserialize, Serialize};
 
@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum WeightNorm {
-    /// `w_i / max_j w_j`: weights proportional to reputation, as SPEC has them, but scaled so
+    /// `w_i / max_j w_j`: weights proportional to reputation, as docs/PAPER-METHOD.md has them, but scaled so
     /// that the most trusted reporter counts its LLR in full. With uniform reputations every
     /// weight is one, the sum of LLRs is the Dawid–Skene posterior (what the E-step needs to be
     /// a probability, not one shrunken by `1/n`), and no reporter ever counts more than its
@@ -22,7 +22,7 @@ pub enum WeightNorm {
     Capped,
     /// `n * w_i`: weights average one.
     MeanOne,
-    /// `w_i` as SPEC has it (weights sum to one: posteriors shrink by about `1/n`).
+    /// `w_i` as docs/PAPER-METHOD.md has it (weights sum to one: posteriors shrink by about `1/n`).
     SumOne,
 }
 
@@ -32,13 +32,13 @@ pub enum WeightNorm {
 pub enum Guardrail {
     /// Error co-occurrence over every labelled round in the pool (decayed like every pool sum),
     /// shrunk toward 0 by the evidence behind it: `rho * M / (M + corr_shrink)` with `M` the
-    /// (decayed) number of rounds in the table. With SPEC's +0.5 smoothing alone, ten rounds on
+    /// (decayed) number of rounds in the table. With the paper method's +0.5 smoothing alone, ten rounds on
     /// which two reporters never err read as rho = 0.45, which silences agreement exactly when
     /// little is known. Unlabelled rounds do not count: errors measured against the engine's own
     /// guesses make agreement look like correlated error and feed back into the guesses.
     #[default]
     Pool,
-    /// SPEC's window of the last `corr_window` labelled rounds.
+    /// The paper method's window of the last `corr_window` labelled rounds.
     Window,
 }
 
@@ -52,7 +52,7 @@ pub enum Reputation {
     /// and above the cap a good reporter stops crowding out the others that also help.
     #[default]
     Discounted,
-    /// SPEC's `w_i <- w_i exp(eta phi_i) / Z` (on scaled credits when `credit_half_life > 0`).
+    /// The paper method's `w_i <- w_i exp(eta phi_i) / Z` (on scaled credits when `credit_half_life > 0`).
     Multiplicative,
 }
 
@@ -76,7 +76,7 @@ pub enum SoftTruth {
 #[serde(default, deny_unknown_fields)]
 pub struct AdaptiveConfig {
     /// What multiplies each LLR: `w_i / max w` (max-one), `min(1, n w_i / full_weight_at)`
-    /// (capped), `n w_i` (mean-one) or SPEC's `w_i` (sum-one).
+    /// (capped), `n w_i` (mean-one) or the paper method's `w_i` (sum-one).
     pub weights: WeightNorm,
     /// Under `capped`: the reputation, as a multiple of the average `1/n`, from which a
     /// reporter's LLR counts in full.
@@ -130,12 +130,12 @@ pub struct AdaptiveConfig {
     pub decay_prior: bool,
     /// Rank neighbours by decayed kernel weight instead of by cosine (recent rounds first).
     pub decay_ranking: bool,
-    /// Reputation learning rate (SPEC's `eta`, for this method), per unit of typical credit
+    /// Reputation learning rate (the paper method's `eta`, for this method), per unit of typical credit
     /// when `credit_half_life > 0`.
     pub eta: f64,
     /// Half-life, in labelled rounds, of the running mean of `|phi|` that credits are divided by
     /// before the reputation update, so that `eta` and `fixed_share` mean the same on data whose
-    /// credits are a tenth or ten times those of another. 0 uses raw credits (as SPEC does).
+    /// credits are a tenth or ten times those of another. 0 uses raw credits (as docs/PAPER-METHOD.md does).
     pub credit_half_life: f64,
     /// How reputations follow the credits.
     pub reputation: Reputation,
@@ -228,7 +228,7 @@ impl Default for AdaptiveConfig {
 }
 
 impl AdaptiveConfig {
-    /// Every extension off: with every round labelled the method is SPEC's, bit for bit
+    /// Every extension off: with every round labelled the method is the paper method's, bit for bit
     /// (reputation rate `eta` and the threshold rule taken from the paper's settings).
     pub fn paper_equivalent(eta: f64, threshold_initial: f64, threshold_min_rounds: usize) -> Self {
         Self {

@@ -1,4 +1,4 @@
-//! The `adaptive` fusion method (docs/METHOD.md): SPEC's context-aware Dawid–Skene, extended
+//! The `adaptive` fusion method (docs/METHOD.md): the paper method's context-aware Dawid–Skene, extended
 //! where the paper lists future work.
 //!
 //! - Every observed round joins the pool. An unlabelled round's truth is its E-step posterior
@@ -14,7 +14,7 @@
 //!
 //! The state is a pure function of the sequence of events (`observe`, `apply`), so replaying
 //! stored rounds in order rebuilds it exactly. The per-event work is bounded: one pass over the
-//! pool (as SPEC's inference is over the bank), the E-step of at most `refresh_max + em_chunk`
+//! pool (as the paper method's inference is over the bank), the E-step of at most `refresh_max + em_chunk`
 //! entries.
 
 pub mod calibrate;
@@ -91,7 +91,7 @@ pub struct Adaptive {
     vote_score: Tally,
     /// Fitted on the calibrated posteriors, with this method's own cold-start rule.
     threshold: ThresholdFitter,
-    /// SPEC's window of error correlations, kept only under `guardrail = "window"`.
+    /// The paper method's window of error correlations, kept only under `guardrail = "window"`.
     corr: Option<CorrWindow>,
 }
 
@@ -130,7 +130,7 @@ impl Tally {
 }
 
 /// Majority vote of a round: a label is on when MORE than half of the present reporters report
-/// it (SPEC §6).
+/// it (PAPER-METHOD.md §6).
 pub fn majority_vote(round: &Round, l: usize) -> Vec<u8> {
     let n = round.present.len();
     let present = round.present.iter().filter(|&&p| p).count();
@@ -197,10 +197,10 @@ impl Adaptive {
     }
 
     /// The adaptive reputation update (docs/METHOD.md §4): credits divided by the running credit
-    /// scale; then either SPEC's multiplicative update or the discounted one; then fixed-share
+    /// scale; then either the paper method's multiplicative update or the discounted one; then fixed-share
     /// mixing. Under `discounted`, a reporter that sat the round out keeps its weight: absence
     /// says nothing about its accuracy, and the softmax would otherwise move it with the
-    /// others' credit. (`multiplicative` is SPEC's update, kept as SPEC has it.)
+    /// others' credit. (`multiplicative` is the paper method's update, kept as docs/PAPER-METHOD.md has it.)
     pub fn reputation(&self, cx: &Ctx, w: &[f64], phi: &[f64], coalition: &[usize]) -> Vec<f64> {
         let a = &cx.cfg.adaptive;
         let st = self
@@ -515,7 +515,7 @@ impl Adaptive {
                     for k in 0..l {
                         let (i, j) = (coalition[x], coalition[y]);
                         rho[(x * p + y) * l + k] = match &self.corr {
-                            // `guardrail = "window"`: SPEC's.
+                            // `guardrail = "window"`: the paper method's.
                             Some(corr) => corr.rho(i, j, k, cfg.rho_max),
                             None => {
                                 // The phi coefficient is symmetric in (i, j): the cell order
@@ -558,7 +558,7 @@ impl Adaptive {
     }
 
     /// Calibrated posteriors of a round's signals (the raw ones when calibration is off, which
-    /// are then SPEC's `q` exactly).
+    /// are then the paper method's `q` exactly).
     fn posterior(&self, cx: &Ctx, s: &Signals) -> Vec<f64> {
         if !cx.cfg.adaptive.calibration {
             return s.full_posterior();

@@ -9,7 +9,7 @@
 //!
 //! Neighbours are ranked by their kernel weight `max(0, cos)^tau * 2^(-|age| / h)` (the age in
 //! labelled rounds between the two entries), then by cosine, then older round first. Without
-//! decay that is SPEC's order exactly (cosine, then older first); with it, a recent round that is
+//! decay that is the paper method's order exactly (cosine, then older first); with it, a recent round that is
 //! a little less similar beats an old one, so decay does not empty the neighbourhood of weight.
 
 use crate::bank::{dot, Bank};
