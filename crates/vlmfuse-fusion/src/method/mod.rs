@@ -35,14 +35,14 @@ pub struct Ctx<'a> {
 /// The method an engine runs, with its state.
 #[derive(Debug, Clone)]
 pub enum MethodState {
-    Paper(Paper),
+    Paper(Box<Paper>),
     Adaptive(Box<Adaptive>),
 }
 
 impl MethodState {
     pub fn new(cfg: &FusionConfig, n: usize, l: usize) -> Self {
         match cfg.method {
-            crate::Method::Paper => MethodState::Paper(Paper::new(cfg, n, l)),
+            crate::Method::Paper => MethodState::Paper(Box::new(Paper::new(cfg, n, l))),
             crate::Method::Adaptive => MethodState::Adaptive(Box::new(Adaptive::new(cfg, n, l))),
         }
     }
