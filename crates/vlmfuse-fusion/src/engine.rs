@@ -75,6 +75,32 @@ pub struct Inference {
     pub scan: Option<Scan>,
 }
 
+impl Inference {
+    /// Thresholds the posteriors (`q >= t` per label) into the round's inference; the one
+    /// decision rule both methods serve.
+    pub(crate) fn decide(
+        signals: Signals,
+        q: Vec<f64>,
+        thresholds: Vec<f64>,
+        w: &[f64],
+        scan: Option<Scan>,
+    ) -> Self {
+        let pred = q
+            .iter()
+            .zip(&thresholds)
+            .map(|(&p, &t)| (p >= t) as u8)
+            .collect();
+        Inference {
+            signals,
+            q,
+            thresholds,
+            pred,
+            w_used: w.to_vec(),
+            scan,
+        }
+    }
+}
+
 /// One label's explanation: the prior and each member's weighted, guardrailed LLR.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LabelExplanation {

@@ -53,19 +53,7 @@ impl Paper {
         let signals = self.signals(cx, round, &nb);
         let q = signals.full_posterior();
         let thresholds = self.threshold.thresholds().to_vec();
-        let pred = q
-            .iter()
-            .zip(&thresholds)
-            .map(|(&p, &t)| (p >= t) as u8)
-            .collect();
-        Inference {
-            signals,
-            q,
-            thresholds,
-            pred,
-            w_used: cx.w.to_vec(),
-            scan: None,
-        }
+        Inference::decide(signals, q, thresholds, cx.w, None)
     }
 
     fn signals(&self, cx: &Ctx, round: &Round, nb: &[Neighbour]) -> Signals {

@@ -610,19 +610,7 @@ impl Adaptive {
         } else {
             (self.posterior(cx, &signals), self.thresholds(cx))
         };
-        let pred = q
-            .iter()
-            .zip(&thresholds)
-            .map(|(&p, &t)| (p >= t) as u8)
-            .collect();
-        Inference {
-            signals,
-            q,
-            thresholds,
-            pred,
-            w_used: cx.w.to_vec(),
-            scan: Some(scan),
-        }
+        Inference::decide(signals, q, thresholds, cx.w, Some(scan))
     }
 
     /// Whether the vote fallback is serving majority vote: until the model's decisions, over the
