@@ -16,9 +16,8 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use candle_core::{DType, Device};
-use vlmfuse_models::models::qwen3_vl::{
-    argmax_rows, Cache, LoadOptions, Qwen3Vl, Qwen3VlProcessor,
-};
+use vlmfuse_models::generate::{generate_with, GenerateOptions};
+use vlmfuse_models::models::qwen3_vl::{Cache, LoadOptions, Qwen3Vl, Qwen3VlProcessor};
 use vlmfuse_models::{FrameRef, WeightSource};
 use vlmfuse_testkit_models::fixtures::qwen3_vl::parity_frame;
 
@@ -142,21 +141,19 @@ fn run(a: &Args) -> Result<(), vlmfuse_models::ModelError> {
         let t1 = Instant::now();
         prompt_tokens = seq.ids.len();
         let mut cache = Cache::new(seq.ids.len() + a.new + 1);
-        let mut logits = model.prefill(std::slice::from_ref(&seq), &mut cache)?;
-        let mut next = argmax_rows(&logits)?;
-        let t2 = Instant::now();
-        let mut out = vec![next[0]];
-        for _ in 1..a.new {
-            logits = model.step(&next, &mut cache)?;
-            next = argmax_rows(&logits)?;
-            out.push(next[0]);
-        }
-        let t3 = Instant::now();
+        let g = generate_with(
+            &model,
+            &vec![seq],
+            &mut cache,
+            &GenerateOptions::greedy(a.new, &[]),
+            None,
+        )?;
+        let out = g.tokens[0].clone();
         if run > 0 {
             pre.push((t1 - t0).as_secs_f64() * 1e3);
-            prefill.push((t2 - t1).as_secs_f64() * 1e3);
+            prefill.push(g.prefill.as_secs_f64() * 1e3);
             // The first token comes from the prefill; the rest from `new - 1` steps.
-            decode.push((a.new - 1) as f64 / (t3 - t2).as_secs_f64().max(1e-9));
+            decode.push((a.new - 1) as f64 / g.decode.as_secs_f64().max(1e-9));
         }
         ids = out;
     }

@@ -17,6 +17,7 @@ use std::path::PathBuf;
 use std::process::Command;
 use std::time::Instant;
 
+use vlmfuse_models::generate::{generate_with, GenerateOptions};
 use vlmfuse_models::models::video_llava::{LoadOptions, VideoLlava, VideoLlavaProcessor};
 use vlmfuse_models::{FrameRef, WeightSource};
 use vlmfuse_testkit_models::fixtures::video_llava::PARITY_CLIPS;
@@ -81,15 +82,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     for _ in 0..a.repeats + 1 {
         let t0 = Instant::now();
         let inputs = proc.prepare_videos(&[(text.as_str(), refs.as_slice())])?;
-        let logits = model.prefill(&inputs, &mut cache)?;
-        let mut next = logits.argmax(candle_core::D::Minus1)?.to_vec1::<u32>()?;
-        let ttft = t0.elapsed().as_secs_f64();
-        let t1 = Instant::now();
-        for _ in 1..a.new_tokens {
-            let l = model.step(&next, &mut cache)?;
-            next = l.argmax(candle_core::D::Minus1)?.to_vec1::<u32>()?;
-        }
-        let tps = (a.new_tokens - 1) as f64 / t1.elapsed().as_secs_f64();
+        let pre = t0.elapsed();
+        let g = generate_with(
+            &model,
+            &inputs,
+            &mut cache,
+            &GenerateOptions::greedy(a.new_tokens, &[]),
+            None,
+        )?;
+        let ttft = (pre + g.prefill).as_secs_f64();
+        let tps = (a.new_tokens - 1) as f64 / g.decode.as_secs_f64().max(1e-9);
         prompt = inputs.ids.seq_len();
         best_ttft = best_ttft.min(ttft);
         best_tps = best_tps.max(tps);

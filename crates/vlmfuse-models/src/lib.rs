@@ -5,6 +5,7 @@
 pub mod device;
 pub mod embed;
 mod error;
+pub mod generate;
 pub mod imaging;
 pub mod lora;
 pub mod models;

@@ -10,8 +10,9 @@ use std::path::{Path, PathBuf};
 use base64::Engine as _;
 use candle_core::DType;
 use serde_json::Value;
+use vlmfuse_models::generate::argmax_rows;
 use vlmfuse_models::models::qwen3_vl::{
-    argmax_rows, Cache, LoadOptions, Qwen3Vl, Qwen3VlProcessor, Sequence, VideoProcessor,
+    Cache, LoadOptions, Qwen3Vl, Qwen3VlProcessor, Sequence, VideoProcessor,
     VideoProcessorConfig,
 };
 use vlmfuse_models::{FrameRef, ModelError, WeightSource};

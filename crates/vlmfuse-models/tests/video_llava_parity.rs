@@ -7,13 +7,27 @@ use std::path::{Path, PathBuf};
 
 use base64::Engine;
 use candle_core::{DType, Device};
+use vlmfuse_models::generate::{generate_with, GenerateOptions};
 use vlmfuse_models::models::video_llava::transformers5_name;
 use vlmfuse_models::models::video_llava::{
-    LoadOptions, ModelInputs, VideoLlava, VideoLlavaConfig, VideoLlavaProcessor,
+    KvCache, LoadOptions, ModelInputs, VideoLlava, VideoLlavaConfig, VideoLlavaProcessor,
 };
 use vlmfuse_models::{Frame, FrameRef, ModelError, WeightSource};
 use vlmfuse_testkit_models::fixtures::video_llava::{SyntheticClip, PARITY_CLIPS};
 use vlmfuse_testkit_models::fixtures::TinyVideoLlava;
+
+/// Greedy ids of every row as transformers' `generate` returns them: up to `n` tokens, a stop
+/// token included where a row met one.
+fn greedy(
+    model: &VideoLlava,
+    inputs: &ModelInputs,
+    n: usize,
+    stop: &[u32],
+    cache: &mut KvCache,
+) -> Result<Vec<Vec<u32>>, ModelError> {
+    let g = generate_with(model, inputs, cache, &GenerateOptions::greedy(n, stop), None)?;
+    Ok((0..g.tokens.len()).map(|r| g.with_stop(r)).collect())
+}
 
 const MODEL_SEED: u64 = 7;
 const ADAPTER_SEED: u64 = 21;
@@ -259,7 +273,7 @@ fn input_ids_logits_and_greedy_ids_match_reference() {
         report.push(format!("{name}: max |Δlogit| {d:.2e} (range {range:.1})"));
         assert!(d <= TOL, "{name}: first-token logits differ by {d}");
 
-        let ids = m.generate_greedy(&inputs, 16, &[], &mut cache).unwrap();
+        let ids = greedy(&m, &inputs, 16, &[], &mut cache).unwrap();
         assert_eq!(ids, ints(&case["greedy"]), "{name}: greedy ids");
     }
     eprintln!("{}", report.join("\n"));
@@ -364,7 +378,7 @@ fn batch_rows_equal_their_single_runs_even_with_different_frame_counts() {
         "row 1 is padded"
     );
     let mut cache = model.new_cache(512);
-    let ids = model.generate_greedy(&batch, 8, &[], &mut cache).unwrap();
+    let ids = greedy(&model, &batch, 8, &[], &mut cache).unwrap();
     let bl: Vec<f32> = model
         .prefill(&batch, &mut cache)
         .unwrap()
@@ -385,7 +399,7 @@ fn batch_rows_equal_their_single_runs_even_with_different_frame_counts() {
         let v = sl.len();
         let d = max_abs_diff(&bl[r * v..(r + 1) * v], &sl);
         assert!(d <= TOL, "row {r}: batch vs single {d}");
-        let sid = model.generate_greedy(&single, 8, &[], &mut c).unwrap();
+        let sid = greedy(&model, &single, 8, &[], &mut c).unwrap();
         assert_eq!(ids[r], sid[0], "row {r} greedy ids");
     }
 }
@@ -429,14 +443,13 @@ fn one_model_serves_requests_one_after_another() {
         .unwrap();
     let other = proc.prepare_text(&["USER: hi ASSISTANT:"]).unwrap();
     let mut cache = model.new_cache(64);
-    let first = model.generate_greedy(&inputs, 6, &[], &mut cache).unwrap();
-    model.generate_greedy(&other, 6, &[], &mut cache).unwrap();
-    let again = model.generate_greedy(&inputs, 6, &[], &mut cache).unwrap();
+    let first = greedy(&model, &inputs, 6, &[], &mut cache).unwrap();
+    greedy(&model, &other, 6, &[], &mut cache).unwrap();
+    let again = greedy(&model, &inputs, 6, &[], &mut cache).unwrap();
     assert_eq!(first, again, "a previous request leaked into the next");
     // Stopping at EOS keeps the stop token and ends the row.
     let stop = [first[0][2]];
-    let cut = model
-        .generate_greedy(&inputs, 6, &stop, &mut cache)
+    let cut = greedy(&model, &inputs, 6, &stop, &mut cache)
         .unwrap();
     assert_eq!(cut[0], first[0][..3].to_vec());
 }

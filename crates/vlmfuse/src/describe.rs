@@ -183,8 +183,8 @@ pub fn run(args: DescribeArgs) -> anyhow::Result<()> {
             let r = r.with_context(|| format!("loading reporter `{}`", args.reporter))?;
             say(format!(
                 "loaded {} ({:?} on {}) in {:.1} s; generating up to {} tokens ...",
-                r.arch().model_type(),
-                r.arch().dtype(),
+                r.family().model_type(),
+                r.family().dtype(),
                 r.config().device,
                 t.elapsed().as_secs_f64(),
                 r.config().max_new_tokens

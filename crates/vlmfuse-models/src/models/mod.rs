@@ -4,5 +4,6 @@
 //! `text`, ...) on candle-nn layers and has parity tests against transformers' outputs
 //! (`tests/*_parity.rs`).
 
+pub mod family;
 pub mod qwen3_vl;
 pub mod video_llava;

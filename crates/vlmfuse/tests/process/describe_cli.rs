@@ -8,6 +8,7 @@ use candle_core::Tensor;
 use serde_json::Value;
 use std::path::Path;
 use std::process::{Command, Output};
+use vlmfuse_models::generate::{generate, GenerateOptions};
 use vlmfuse_models::models::qwen3_vl::{self, Qwen3Vl, Qwen3VlProcessor, Sequence, VideoInput};
 use vlmfuse_models::models::video_llava::{
     self, EncodedBatch, ModelInputs, VideoLlava, VideoLlavaProcessor, VideoPixels,
@@ -145,8 +146,9 @@ fn describe_dumps_what_the_model_crate_computes_on_both_fixtures() {
                         grid_thw: [t, h, w],
                     }),
                 };
-                m.greedy(&[seq], MAX_NEW, p.eos_ids(), &mut qwen3_vl::Cache::new(64))
+                generate(&m, &vec![seq], &GenerateOptions::greedy(MAX_NEW, p.eos_ids()), None)
                     .unwrap()
+                    .tokens
                     .remove(0)
             }
             _ => {
@@ -176,14 +178,15 @@ fn describe_dumps_what_the_model_crate_computes_on_both_fixtures() {
                     }],
                     images: Vec::new(),
                 };
-                let mut got = m
-                    .generate_greedy(&inputs, MAX_NEW, &p.eos_token_ids, &mut m.new_cache(64))
-                    .unwrap()
-                    .remove(0);
-                if got.last().is_some_and(|t| p.eos_token_ids.contains(t)) {
-                    got.pop();
-                }
-                got
+                generate(
+                    &m,
+                    &inputs,
+                    &GenerateOptions::greedy(MAX_NEW, &p.eos_token_ids),
+                    None,
+                )
+                .unwrap()
+                .tokens
+                .remove(0)
             }
         };
         assert_eq!(generated, want, "{name}: generated ids");

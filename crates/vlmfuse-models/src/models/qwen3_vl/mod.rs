@@ -14,6 +14,7 @@
 //! cache, so one loaded model serves every request and `prefill` starts each one afresh.
 
 pub mod config;
+mod family;
 pub mod processor;
 pub mod text;
 pub mod vision;
@@ -25,6 +26,7 @@ use candle_nn::kv_cache::KvCache;
 use candle_nn::VarBuilder;
 
 pub use config::{Config, TextConfig, VisionConfig};
+pub use family::Qwen3VlFamily;
 pub use processor::{
     smart_resize, ProcessedVideo, Qwen3VlProcessor, VideoProcessor, VideoProcessorConfig,
 };
@@ -543,63 +545,10 @@ impl Qwen3Vl {
             &self.device,
         )?))
     }
-
-    /// Greedy decoding of a batch: up to `max_new` tokens per row, a row stops at any id in
-    /// `stop` (not included). Ties go to the lowest id, as `torch.argmax`.
-    pub fn greedy(
-        &self,
-        batch: &[Sequence],
-        max_new: usize,
-        stop: &[u32],
-        cache: &mut Cache,
-    ) -> Result<Vec<Vec<u32>>, ModelError> {
-        let mut out = vec![Vec::new(); batch.len()];
-        if max_new == 0 {
-            return Ok(out);
-        }
-        let mut logits = self.prefill(batch, cache)?;
-        let mut done = vec![false; batch.len()];
-        loop {
-            let next = argmax_rows(&logits)?;
-            for (r, &t) in next.iter().enumerate() {
-                if done[r] {
-                    continue;
-                }
-                if stop.contains(&t) {
-                    done[r] = true;
-                } else {
-                    out[r].push(t);
-                    done[r] = out[r].len() >= max_new;
-                }
-            }
-            if done.iter().all(|&d| d) {
-                return Ok(out);
-            }
-            logits = self.step(&next, cache)?;
-        }
-    }
 }
 
 fn visual_tokens(grids: &[[usize; 3]], merge: usize) -> usize {
     grids.iter().map(|g| g[0] * g[1] * g[2]).sum::<usize>() / (merge * merge)
-}
-
-/// Index of the largest value of each row of `[batch, vocab]` logits (first one on ties, as
-/// `torch.argmax`). The candle reporter decodes both architectures greedily with it.
-pub fn argmax_rows(logits: &Tensor) -> Result<Vec<u32>, ModelError> {
-    let rows = logits.to_dtype(DType::F32)?.to_vec2::<f32>()?;
-    Ok(rows
-        .iter()
-        .map(|r| {
-            let mut best = 0;
-            for (i, &x) in r.iter().enumerate() {
-                if x > r[best] {
-                    best = i;
-                }
-            }
-            best as u32
-        })
-        .collect())
 }
 
 #[cfg(test)]
@@ -630,11 +579,5 @@ mod tests {
         assert!(rope_index(&[1, v], v, &[], 2).is_err());
         let (p, n) = rope_index(&[5, 6, 7], v, &[], 2).unwrap();
         assert_eq!((p[0].clone(), n), (vec![0, 1, 2], 3));
-    }
-
-    #[test]
-    fn argmax_takes_the_first_maximum() {
-        let t = Tensor::new(&[[1f32, 3., 3.], [5., 0., 5.]], &Device::Cpu).unwrap();
-        assert_eq!(argmax_rows(&t).unwrap(), vec![1, 0]);
     }
 }

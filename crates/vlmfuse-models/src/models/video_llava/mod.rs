@@ -13,6 +13,7 @@
 //! either are merged at load.
 
 pub mod config;
+mod family;
 pub mod processor;
 pub mod text;
 pub mod vision;
@@ -27,6 +28,7 @@ pub use config::{FeatureLayers, SelectStrategy, VideoLlavaConfig};
 pub use processor::{
     Arith, EncodedBatch, ImagePixels, ImageProcessor, Resample, VideoLlavaProcessor, VideoPixels,
 };
+pub use family::VideoLlavaFamily;
 pub use text::KvCache;
 
 use crate::lora::{load_adapter, merge_adapter_mapped};
@@ -460,38 +462,6 @@ impl VideoLlava {
         let emb = self.text.embed(&ids)?;
         let valid = vec![vec![true]; tokens.len()];
         Ok(self.text.forward(&emb, &valid, cache)?)
-    }
-
-    /// Greedy decoding of up to `max_new` tokens per row; a row stops after a `stop` token
-    /// (included in its output) while the others go on, as transformers' `generate` does.
-    pub fn generate_greedy(
-        &self,
-        inputs: &ModelInputs,
-        max_new: usize,
-        stop: &[u32],
-        cache: &mut KvCache,
-    ) -> Result<Vec<Vec<u32>>, ModelError> {
-        let b = inputs.ids.batch();
-        let mut out = vec![Vec::with_capacity(max_new); b];
-        if max_new == 0 {
-            return Ok(out);
-        }
-        let mut logits = self.prefill(inputs, cache)?;
-        let mut done = vec![false; b];
-        for step in 0..max_new {
-            let next = LlamaText::argmax(&logits)?;
-            for (r, &t) in next.iter().enumerate() {
-                if !done[r] {
-                    out[r].push(t);
-                    done[r] = stop.contains(&t);
-                }
-            }
-            if done.iter().all(|&d| d) || step + 1 == max_new {
-                break;
-            }
-            logits = self.step(&next, cache)?;
-        }
-        Ok(out)
     }
 
     /// Logits after every prompt position fed one token at a time, `[batch, seq, vocab]`: the

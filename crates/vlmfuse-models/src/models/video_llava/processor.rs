@@ -5,7 +5,6 @@
 //! The pixels come from [`crate::imaging`]: the video processor with torch's arithmetic, the
 //! image processor with Pillow's, each reproduced bit for bit.
 
-use std::str::FromStr;
 
 use tokenizers::Tokenizer;
 
@@ -62,11 +61,16 @@ impl TokenizerSettings {
 /// transformers (a `Prepend`+`Replace` normalizer) therefore tokenizes differently there than
 /// when read verbatim, and it is the rebuilt behaviour that the model sees in the reference.
 fn load_tokenizer(source: &WeightSource) -> Result<(Tokenizer, TokenizerSettings), ModelError> {
+    use tokenizers::decoders::byte_fallback::ByteFallback;
+    use tokenizers::decoders::fuse::Fuse;
+    use tokenizers::decoders::sequence::Sequence as DecoderSequence;
+    use tokenizers::decoders::strip::Strip;
+    use tokenizers::normalizers::replace::Replace;
+    use tokenizers::pre_tokenizers::metaspace::{Metaspace, PrependScheme};
+    use tokenizers::processors::template::TemplateProcessing;
+    use tokenizers::{DecoderWrapper, ModelWrapper, NormalizerWrapper};
+
     let path = source.resolve("tokenizer.json")?;
-    let text = std::fs::read_to_string(&path).map_err(|e| ModelError::Io {
-        path: path.clone(),
-        source: e,
-    })?;
     let settings = match source.resolve_optional("tokenizer_config.json")? {
         Some(_) => TokenizerSettings::from_json(&source.read_json("tokenizer_config.json")?),
         None => TokenizerSettings::default(),
@@ -75,96 +79,89 @@ fn load_tokenizer(source: &WeightSource) -> Result<(Tokenizer, TokenizerSettings
         path: path.clone(),
         reason: e,
     };
-    let mut j: serde_json::Value = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
+    let mut tok = Tokenizer::from_file(&path).map_err(|e| bad(e.to_string()))?;
     let is_llama = matches!(
         settings.class.as_deref(),
         Some("LlamaTokenizer") | Some("LlamaTokenizerFast")
     );
     if is_llama {
-        let model = j
-            .get_mut("model")
-            .and_then(|m| m.as_object_mut())
-            .ok_or_else(|| bad("no `model` object".into()))?;
-        if model.get("type").and_then(|t| t.as_str()) != Some("BPE") {
+        let ModelWrapper::BPE(mut bpe) = tok.get_model().clone() else {
             return Err(bad(
                 "LlamaTokenizer needs a BPE tokenizer.json (found another model type)".into(),
             ));
-        }
-        model.insert("fuse_unk".into(), true.into());
-        model.insert("byte_fallback".into(), true.into());
-        model.insert("dropout".into(), serde_json::Value::Null);
-        model.insert("continuing_subword_prefix".into(), serde_json::Value::Null);
-        model.insert("end_of_word_suffix".into(), serde_json::Value::Null);
-        model.insert("ignore_merges".into(), false.into());
+        };
+        bpe.fuse_unk = true;
+        bpe.byte_fallback = true;
+        bpe.dropout = None;
+        bpe.continuing_subword_prefix = None;
+        bpe.end_of_word_suffix = None;
+        bpe.ignore_merges = false;
+        bpe.clear_cache();
+        tok.with_model(bpe);
         let add_prefix_space = settings.add_prefix_space.unwrap_or(true);
         let scheme = if !add_prefix_space {
-            "never"
+            PrependScheme::Never
         } else if settings.legacy.unwrap_or(false) {
-            "always"
+            PrependScheme::Always
         } else {
-            "first"
+            PrependScheme::First
         };
-        j["normalizer"] = serde_json::Value::Null;
-        j["pre_tokenizer"] = serde_json::json!({
-            "type": "Metaspace", "replacement": "▁", "prepend_scheme": scheme, "split": false
-        });
-        let mut decoders = vec![
-            serde_json::json!({"type": "Replace", "pattern": {"String": "▁"}, "content": " "}),
-            serde_json::json!({"type": "ByteFallback"}),
-            serde_json::json!({"type": "Fuse"}),
+        tok.with_normalizer(None::<NormalizerWrapper>)
+            .map_err(|e| bad(e.to_string()))?;
+        tok.with_pre_tokenizer(Some(Metaspace::new('▁', scheme, false)));
+        let replace = Replace::new("▁", " ").map_err(|e| bad(e.to_string()))?;
+        let mut decoders: Vec<DecoderWrapper> = vec![
+            replace.into(),
+            ByteFallback::new().into(),
+            Fuse::new().into(),
         ];
         if add_prefix_space {
-            decoders
-                .push(serde_json::json!({"type": "Strip", "content": " ", "start": 1, "stop": 0}));
+            decoders.push(Strip::new(' ', 1, 0).into());
         }
-        j["decoder"] = serde_json::json!({"type": "Sequence", "decoders": decoders});
+        tok.with_decoder(Some(DecoderSequence::new(decoders)));
     }
     let explicit = settings.add_bos_token.is_some() || settings.add_eos_token.is_some();
-    if explicit || j.get("post_processor").is_none_or(|p| p.is_null()) {
+    if explicit || tok.get_post_processor().is_none() {
         // transformers' `update_post_processor`: `[bos] $A [eos]` as the flags say (Llama's
         // default is BOS on, EOS off).
-        let vocab_id = |tok: &str| -> Option<u64> {
-            j.get("added_tokens")
-                .and_then(|a| a.as_array())
-                .and_then(|a| {
-                    a.iter()
-                        .find(|t| t.get("content").and_then(|c| c.as_str()) == Some(tok))
-                        .and_then(|t| t.get("id")?.as_u64())
-                })
-                .or_else(|| j["model"]["vocab"].get(tok).and_then(|x| x.as_u64()))
-        };
-        let default_bos = is_llama;
-        let add_bos = settings.add_bos_token.unwrap_or(default_bos);
+        let add_bos = settings.add_bos_token.unwrap_or(is_llama);
         let add_eos = settings.add_eos_token.unwrap_or(false);
         let bos = settings.bos.clone().unwrap_or_else(|| "<s>".into());
         let eos = settings.eos.clone().unwrap_or_else(|| "</s>".into());
-        let mut single = Vec::new();
-        let mut specials = serde_json::Map::new();
-        let mut push = |tok: &str, list: &mut Vec<serde_json::Value>| -> Result<(), ModelError> {
-            let id = vocab_id(tok)
-                .ok_or_else(|| bad(format!("special token `{tok}` is not in the vocabulary")))?;
-            list.push(serde_json::json!({"SpecialToken": {"id": tok, "type_id": 0}}));
-            specials.insert(
-                tok.into(),
-                serde_json::json!({"id": tok, "ids": [id], "tokens": [tok]}),
-            );
+        let mut single: Vec<String> = Vec::new();
+        let mut specials: Vec<(String, u32)> = Vec::new();
+        let mut push = |t: &str, list: &mut Vec<String>| -> Result<(), ModelError> {
+            let id = tok
+                .token_to_id(t)
+                .ok_or_else(|| bad(format!("special token `{t}` is not in the vocabulary")))?;
+            if t.contains(':') || t.contains(' ') {
+                return Err(bad(format!(
+                    "special token `{t}` cannot appear in a template (`:` or a space)"
+                )));
+            }
+            list.push(format!("{t}:0"));
+            specials.push((t.to_string(), id));
             Ok(())
         };
         if add_bos {
             push(&bos, &mut single)?;
         }
-        single.push(serde_json::json!({"Sequence": {"id": "A", "type_id": 0}}));
+        single.push("$A:0".into());
         if add_eos {
             push(&eos, &mut single)?;
         }
         let mut pair = single.clone();
-        pair.push(serde_json::json!({"Sequence": {"id": "B", "type_id": 1}}));
-        j["post_processor"] = serde_json::json!({
-            "type": "TemplateProcessing", "single": single, "pair": pair,
-            "special_tokens": specials
-        });
+        pair.push("$B:1".into());
+        let post = TemplateProcessing::builder()
+            .try_single(single)
+            .map_err(bad)?
+            .try_pair(pair)
+            .map_err(bad)?
+            .special_tokens(specials)
+            .build()
+            .map_err(|e| bad(e.to_string()))?;
+        tok.with_post_processor(Some(post));
     }
-    let tok = Tokenizer::from_str(&j.to_string()).map_err(|e| bad(e.to_string()))?;
     Ok((tok, settings))
 }
 

@@ -8,7 +8,7 @@
 //! of prompts of different lengths runs as one left-padded batch with transformers' semantics
 //! (pad keys masked, positions counted over real tokens only).
 
-use candle_core::{DType, Device, Module, Tensor, D};
+use candle_core::{DType, Device, Module, Tensor};
 use candle_nn::{Embedding, Linear, RmsNorm, VarBuilder};
 
 use super::config::{Act, RopeScaling, TextConfig};
@@ -414,10 +414,5 @@ impl LlamaText {
         let all = Tensor::cat(&outs, 1)?;
         debug_assert_eq!(all.dims3()?.0, b);
         Ok(all)
-    }
-
-    /// Argmax over the last axis (ties to the lowest id, as torch does).
-    pub fn argmax(logits: &Tensor) -> candle_core::Result<Vec<u32>> {
-        logits.argmax(D::Minus1)?.to_vec1::<u32>()
     }
 }

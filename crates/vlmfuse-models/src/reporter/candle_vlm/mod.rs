@@ -5,9 +5,10 @@
 //! every request; each generation owns its KV cache.
 
 mod config;
-mod engine;
 mod reporter;
 
 pub use config::{parse_dtype, CandleVlmConfig, RawCandleVlmConfig, DEFAULT_QWEN_FRAMES};
-pub use engine::{spread_indices, Arch, ArchCache, InputView, Prepared, SUPPORTED_MODEL_TYPES};
+pub use crate::models::family::{
+    spread_indices, supported_model_types, AnyFamily, InputView, Prepared,
+};
 pub use reporter::{CandleVlmReporter, Generation, Trace};

@@ -3,15 +3,14 @@
 //! which runs one generation at a time and queues the rest, so the model needs no lock; every
 //! generation gets a fresh cache.
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
 use candle_core::Tensor;
-use candle_transformers::generation::LogitsProcessor;
 
-use super::config::{parse_dtype, CandleVlmConfig, DEFAULT_QWEN_FRAMES};
-use super::engine::{Arch, Prepared};
-use crate::models::qwen3_vl::argmax_rows;
+use super::config::{parse_dtype, CandleVlmConfig};
+use crate::generate::GenerateOptions;
+use crate::models::family::{load_family, AnyFamily, FamilyOptions, Prepared};
 use crate::reporter::{ClipInput, LocalReporter, ReporterOutput};
 use crate::{parse_device, Frame, ModelError};
 
@@ -62,7 +61,7 @@ pub struct Trace {
 /// and double its activation memory), not from a lock here.
 pub struct CandleVlmReporter {
     cfg: CandleVlmConfig,
-    arch: Arch,
+    family: Box<dyn AnyFamily>,
 }
 
 impl CandleVlmReporter {
@@ -84,15 +83,23 @@ impl CandleVlmReporter {
         let t0 = Instant::now();
         let device = parse_device(&cfg.device)?;
         let dtype = parse_dtype(cfg.dtype.as_deref(), &device)?;
-        let arch = Arch::load(&cfg.weights, cfg.adapter.as_ref(), dtype, &device)?;
-        if let (Some(n), Arch::VideoLlava { processor, .. }) = (cfg.frames, &arch) {
-            return Err(ModelError::BadConfig(format!(
-                "reporter `{}`: frames = {n} applies to Qwen3-VL only; this checkpoint is \
-                 video_llava, whose processor takes num_frames = {} of each clip; remove frames",
-                cfg.name, processor.num_frames
-            )));
-        }
-        if arch.eos_ids().is_empty() {
+        let family = load_family(
+            &cfg.weights,
+            &FamilyOptions {
+                dtype,
+                device: device.clone(),
+                adapter: cfg.adapter.clone(),
+                frames: cfg.frames,
+                prompt: cfg.prompt.clone(),
+            },
+        )
+        .map_err(|e| match e {
+            ModelError::BadConfig(m) => {
+                ModelError::BadConfig(format!("reporter `{}`: {m}", cfg.name))
+            }
+            e => e,
+        })?;
+        if family.eos_ids().is_empty() {
             tracing::warn!(
                 reporter = %cfg.name,
                 "the checkpoint names no eos_token_id: answers run to max_new_tokens"
@@ -100,33 +107,30 @@ impl CandleVlmReporter {
         }
         tracing::info!(
             reporter = %cfg.name,
-            model_type = arch.model_type(),
+            model_type = family.model_type(),
             weights = %cfg.weights.describe(),
             device = %cfg.device,
             dtype = ?dtype,
-            lora_modules = arch.merged_lora_keys().len(),
+            lora_modules = family.merged_lora_keys().len(),
             ms = t0.elapsed().as_secs_f64() * 1e3,
             "loaded in-process VLM"
         );
-        Ok(Self { cfg, arch })
+        Ok(Self { cfg, family })
     }
 
     pub fn config(&self) -> &CandleVlmConfig {
         &self.cfg
     }
 
-    /// The loaded architecture (model and processor), for inspection and tests.
-    pub fn arch(&self) -> &Arch {
-        &self.arch
+    /// The loaded family (model and processor), for inspection and tests;
+    /// `family().as_any().downcast_ref::<Qwen3VlFamily>()` reaches the concrete one.
+    pub fn family(&self) -> &dyn AnyFamily {
+        self.family.as_ref()
     }
 
     /// The inputs this reporter builds for `clips` (one row each).
     pub fn prepare(&self, clips: &[&[Frame]]) -> Result<Prepared, ModelError> {
-        self.arch.prepare(
-            clips,
-            &self.cfg.prompt,
-            self.cfg.frames.unwrap_or(DEFAULT_QWEN_FRAMES),
-        )
+        self.family.prepare(clips)
     }
 
     /// One clip, blocking, with this reporter's settings.
@@ -157,14 +161,14 @@ impl CandleVlmReporter {
     pub fn trace(&self, frames: &[Frame], cancel: &AtomicBool) -> Result<Trace, ModelError> {
         let t0 = Instant::now();
         let prepared = self.prepare(&[frames])?;
-        let view = prepared.view(&self.arch);
-        let (pixel_values, grid) = match prepared.pixels(&self.arch, 0)? {
+        let view = self.family.view(&prepared)?;
+        let (pixel_values, grid) = match self.family.pixels(&prepared, 0)? {
             Some((t, g)) => (Some(t), g),
             None => (None, serde_json::Value::Null),
         };
         let (mut gens, first) = self.run(&prepared, cancel, t0, true)?;
         Ok(Trace {
-            model_type: self.arch.model_type(),
+            model_type: self.family.model_type(),
             input_ids: view.input_ids.into_iter().next().unwrap_or_default(),
             pixel_values,
             grid,
@@ -173,10 +177,9 @@ impl CandleVlmReporter {
         })
     }
 
-    /// The decoding loop shared by every architecture: greedy (lowest id on ties, as
-    /// `torch.argmax`) unless a temperature is set, one sampler per row seeded alike so a clip's
-    /// answer does not depend on its batch; a row stops at an end-of-sequence id or
-    /// `max_new_tokens`, the batch when every row has; `cancel` is checked between steps.
+    /// [`crate::generate::generate`] with this reporter's settings: greedy (lowest id on ties,
+    /// as `torch.argmax`) unless a temperature is set; a row stops at an end-of-sequence id or
+    /// `max_new_tokens`; `cancel` is checked between steps.
     fn run(
         &self,
         prepared: &Prepared,
@@ -185,77 +188,27 @@ impl CandleVlmReporter {
         keep_first: bool,
     ) -> Result<(Vec<Generation>, Vec<Vec<f32>>), ModelError> {
         let cfg = &self.cfg;
-        let rows = prepared.rows();
-        let view = prepared.view(&self.arch);
-        let mut cache = self
-            .arch
-            .new_cache(prepared.max_len() + cfg.max_new_tokens + 1);
-        let cancelled = || ModelError::Timeout {
-            what: "generation (cancelled)".into(),
-            after: t0.elapsed(),
+        let view = self.family.view(prepared)?;
+        let opts = GenerateOptions {
+            max_new_tokens: cfg.max_new_tokens,
+            stop: self.family.eos_ids().to_vec(),
+            temperature: cfg.temperature,
+            top_p: cfg.top_p,
+            seed: cfg.seed,
+            keep_first_logits: keep_first,
         };
-        if cancel.load(Ordering::Relaxed) {
-            return Err(cancelled());
-        }
-        let mut logits = self.arch.prefill(prepared, &mut cache)?;
-        let first = if keep_first {
-            logits.to_vec2::<f32>()?
-        } else {
-            Vec::new()
-        };
-        let prefill_ms = t0.elapsed().as_secs_f64() * 1e3;
-        let t1 = Instant::now();
-        let greedy = cfg.temperature.is_none_or(|t| t < 1e-7);
-        let mut samplers: Vec<LogitsProcessor> = (0..rows)
-            .map(|_| LogitsProcessor::new(cfg.seed, cfg.temperature, cfg.top_p))
-            .collect();
-        let eos = self.arch.eos_ids();
-        let mut out: Vec<Vec<u32>> = vec![Vec::new(); rows];
-        let mut done = vec![false; rows];
-        loop {
-            if cancel.load(Ordering::Relaxed) {
-                return Err(cancelled());
-            }
-            let next: Vec<u32> = if greedy {
-                argmax_rows(&logits)?
-            } else {
-                (0..rows)
-                    .map(|r| samplers[r].sample(&logits.get(r)?))
-                    .collect::<Result<_, _>>()?
-            };
-            for (r, &t) in next.iter().enumerate() {
-                if done[r] {
-                    continue;
-                }
-                if eos.contains(&t) {
-                    done[r] = true;
-                } else {
-                    out[r].push(t);
-                    done[r] = out[r].len() >= cfg.max_new_tokens;
-                }
-            }
-            if done.iter().all(|&d| d) {
-                break;
-            }
-            // Finished rows keep being fed (their last id): the batch moves together and their
-            // outputs are no longer read.
-            logits = self.arch.step(&next, &mut cache)?;
-        }
-        let decode_ms = t1.elapsed().as_secs_f64() * 1e3;
-        let pad = |r: usize| {
-            let ids = &view.input_ids[r];
-            match prepared {
-                Prepared::VideoLlava(i) => i.ids.attention_mask[r].iter().filter(|&&m| m).count(),
-                Prepared::Qwen3Vl(_) => ids.len(),
-            }
-        };
-        let gens = out
+        let g = self.family.generate(prepared, &opts, Some(cancel))?;
+        // The prefill time includes preprocessing, which happened before `generate` started.
+        let prefill_ms = (t0.elapsed() - g.decode).as_secs_f64() * 1e3;
+        let decode_ms = g.decode.as_secs_f64() * 1e3;
+        let gens = g
+            .tokens
             .into_iter()
             .enumerate()
             .map(|(r, tokens)| {
                 Ok(Generation {
-                    text: self.arch.decode(&tokens)?.trim().to_string(),
-                    prompt_tokens: pad(r),
+                    text: self.family.decode(&tokens)?.trim().to_string(),
+                    prompt_tokens: view.prompt_tokens[r],
                     visual_tokens: view.visual_tokens[r],
                     tokens,
                     prefill_ms,
@@ -263,7 +216,7 @@ impl CandleVlmReporter {
                 })
             })
             .collect::<Result<Vec<_>, ModelError>>()?;
-        Ok((gens, first))
+        Ok((gens, g.first_logits))
     }
 
     fn output(&self, g: &Generation, t0: Instant) -> ReporterOutput {
