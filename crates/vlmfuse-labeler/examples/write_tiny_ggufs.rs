@@ -7,8 +7,8 @@
 //! The tests regenerate the same files (same seed) and check their fingerprint against the one
 //! the reference recorded, so the reference always describes the file under test.
 
-use vlmfuse_labeler::llm::model::Family;
 use vlmfuse_labeler::tiny_gguf;
+use vlmfuse_models::text::gguf::Family;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let dir = std::env::args()

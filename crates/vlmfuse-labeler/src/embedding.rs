@@ -21,7 +21,6 @@
 //! cost of the stage (about 4 ms per short item on two cores): a round has ~30 items, ~14 with
 //! no rule mention, and a few of those are advice.
 
-use crate::candle_encoder::CandleEncoder;
 use crate::rules::{self, Kind, Mention};
 use crate::text::{self, Sentence, Speller};
 use crate::{
@@ -31,6 +30,7 @@ use crate::{
 use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::Arc;
+use vlmfuse_models::text::CandleEncoder;
 
 /// Paraphrases per default label. Written from how people and VLMs phrase driving advice, not
 /// copied from the evaluation data.

@@ -76,3 +76,28 @@ impl LabelerError {
         }
     }
 }
+
+/// Model code runs in `vlmfuse-models`; its failures keep their meaning here (a missing file is
+/// still a missing asset, a bad config still a config error), so `/readyz` and the HTTP mapping
+/// need not know where the model code lives.
+impl From<vlmfuse_models::ModelError> for LabelerError {
+    fn from(e: vlmfuse_models::ModelError) -> Self {
+        use vlmfuse_models::ModelError as M;
+        match e {
+            M::MissingWeights { .. } => LabelerError::AssetMissing(e.to_string()),
+            M::Onnx(vlmfuse_ort::OrtError::LibraryMissing { .. }) => {
+                LabelerError::AssetMissing(e.to_string())
+            }
+            M::BadConfig(m) => LabelerError::Config(m),
+            M::Tokenizer(m) => LabelerError::Tokenizer(m),
+            M::Candle(e) => LabelerError::Candle(e),
+            M::Chat(e) => LabelerError::Chat(e),
+            M::Backend(e) => LabelerError::Backend(e),
+            M::Io { path, source } => LabelerError::Io(std::io::Error::new(
+                source.kind(),
+                format!("{}: {source}", path.display()),
+            )),
+            other => LabelerError::Model(other.to_string()),
+        }
+    }
+}

@@ -12,16 +12,16 @@
 //! it is useful for loading and speed checks, not for accuracy.
 
 use crate::llm::constrain::{LabelGrammar, TokenTrie};
-use crate::llm::model::{Decoder, Family};
 use crate::llm::prompt::{system_prompt, user_prompt};
 use crate::llm::template::{fallback_template, ChatTemplate, Message, TemplateFamily};
-use crate::llm::tokenizer::GgufTokenizer;
 use crate::{BlockingLabeler, Evidence, EvidenceSource, LabelerError, LabelerOutput, Ontology};
 use candle_core::quantized::gguf_file;
 use candle_core::Device;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
+use vlmfuse_models::text::gguf::GgufTokenizer;
+use vlmfuse_models::text::gguf::{Decoder, Family};
 
 #[derive(Debug, Clone)]
 pub struct GgufConfig {

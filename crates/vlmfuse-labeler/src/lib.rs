@@ -17,29 +17,26 @@
 //! negated or hedged), so that users can see why a label was chosen.
 
 pub mod assets;
-mod candle_encoder;
 mod embedding;
-mod encoder;
-mod encoder_onnx;
 mod error;
 mod gguf;
 pub mod llm;
 mod openai;
 pub mod rules;
-mod sp_tokenizer;
 pub mod text;
 pub mod tiny_gguf;
 
-pub use candle_encoder::CandleEncoder;
 pub use embedding::{EmbeddingConfig, EmbeddingLabeler, ItemMatch, Reading};
-pub use encoder::SentenceEncoder;
-pub use encoder_onnx::{OnnxEncoderConfig, OnnxSentenceEncoder, ENCODER_MODEL_CANDIDATES};
 pub use error::{LabelerError, LabelerErrorKind};
 pub use gguf::{Generation, GgufConfig, GgufLabeler, TemplateSource};
 pub use openai::{OpenAiConfig, OpenAiLabeler};
-pub use sp_tokenizer::SpTokenizer;
 pub use vlmfuse_core::{BackendPool, PoolConfig};
+// The encoders run in the models crate; re-exported because the labeler's configs name them.
 pub use vlmfuse_core::{Label, Ontology, OntologyError};
+pub use vlmfuse_models::text::{
+    CandleEncoder, OnnxEncoderConfig, OnnxSentenceEncoder, SentenceEncoder,
+    ENCODER_MODEL_CANDIDATES,
+};
 
 use futures::future::BoxFuture;
 use serde::{Deserialize, Serialize};

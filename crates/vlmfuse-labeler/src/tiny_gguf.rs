@@ -9,15 +9,15 @@
 //!
 //! Test tooling, not library API: it moves to the test-kit crate with `assets` and `eval`.
 
-use crate::llm::model::Family;
 use crate::llm::template::{fallback_template, TemplateFamily};
-use crate::llm::tokenizer::bytes_to_unicode;
 use crate::LabelerError;
 use candle_core::quantized::gguf_file::{self, Value};
 use candle_core::quantized::{GgmlDType, QTensor};
 use candle_core::{Device, Tensor};
 use std::collections::HashSet;
 use std::path::Path;
+use vlmfuse_models::text::gguf::bytes_to_unicode;
+use vlmfuse_models::text::gguf::Family;
 
 /// Words the vocabularies learn merges for: the answer format, the default ontology's ids, the
 /// prompt's frequent words. Any text still encodes (bytes / byte fallback); these only make the

@@ -6,7 +6,7 @@ mod common;
 use std::sync::{Arc, Mutex, OnceLock};
 use vlmfuse_labeler::{
     BackendPool, BlockingLabeler, EmbeddingConfig, EmbeddingLabeler, EvidenceSource, Label,
-    Labeler, LabelerError, Ontology, PoolConfig, SentenceEncoder,
+    Labeler, Ontology, PoolConfig, SentenceEncoder,
 };
 use vlmfuse_testkit_models::labeler_eval::{
     default_dataset_path, f1_scores, load_dataset, to_mask,
@@ -147,7 +147,7 @@ impl SentenceEncoder for Counting {
     fn dim(&self) -> usize {
         self.inner.dim()
     }
-    fn encode(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>, LabelerError> {
+    fn encode(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>, vlmfuse_models::ModelError> {
         self.calls.lock().unwrap().push(texts.len());
         self.inner.encode(texts)
     }

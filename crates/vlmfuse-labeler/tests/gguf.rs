@@ -15,14 +15,14 @@ use serde::Deserialize;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
-use vlmfuse_labeler::llm::model::{Decoder, Family};
 use vlmfuse_labeler::llm::prompt::parse_labels;
 use vlmfuse_labeler::llm::template::{ChatTemplate, Message};
-use vlmfuse_labeler::llm::tokenizer::GgufTokenizer;
 use vlmfuse_labeler::{
     tiny_gguf, BackendPool, BlockingLabeler, GgufConfig, GgufLabeler, Label, Labeler, Ontology,
-    PoolConfig, SpTokenizer, TemplateSource,
+    PoolConfig, TemplateSource,
 };
+use vlmfuse_models::text::gguf::{Decoder, Family};
+use vlmfuse_models::text::gguf::{GgufTokenizer, SpTokenizer};
 
 const FAMILIES: [Family; 4] = [Family::Llama, Family::Qwen2, Family::Qwen3, Family::Gemma3];
 

@@ -11,7 +11,9 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use candle_transformers::models::bert::{BertModel, Config as BertConfig};
 use tokenizers::{PaddingParams, Tokenizer, TruncationParams};
-use vlmfuse_labeler::{LabelerErrorKind, OnnxEncoderConfig, OnnxSentenceEncoder, SentenceEncoder};
+use vlmfuse_labeler::{
+    LabelerError, LabelerErrorKind, OnnxEncoderConfig, OnnxSentenceEncoder, SentenceEncoder,
+};
 use vlmfuse_ort::SessionOptions;
 
 fn data(rel: &str) -> PathBuf {
@@ -245,7 +247,9 @@ fn wrong_models_are_clear_errors() {
         dir.path().join("tokenizer.json"),
     )
     .unwrap();
-    let e = OnnxSentenceEncoder::load(&OnnxEncoderConfig::new(dir.path())).unwrap_err();
+    let e = LabelerError::from(
+        OnnxSentenceEncoder::load(&OnnxEncoderConfig::new(dir.path())).unwrap_err(),
+    );
     assert_eq!(e.kind(), LabelerErrorKind::Model, "{e}");
     assert!(e.to_string().contains("pixel_values"), "{e}");
 
@@ -257,7 +261,9 @@ fn wrong_models_are_clear_errors() {
         dir.path().join("tokenizer.json"),
     )
     .unwrap();
-    let e = OnnxSentenceEncoder::load(&OnnxEncoderConfig::new(dir.path())).unwrap_err();
+    let e = LabelerError::from(
+        OnnxSentenceEncoder::load(&OnnxEncoderConfig::new(dir.path())).unwrap_err(),
+    );
     assert_eq!(e.kind(), LabelerErrorKind::Model, "{e}");
     assert!(e.to_string().contains("model.safetensors"), "{e}");
 
@@ -269,7 +275,9 @@ fn wrong_models_are_clear_errors() {
             dir.path().join("model.safetensors"),
         )
         .unwrap();
-        let e = OnnxSentenceEncoder::load(&OnnxEncoderConfig::new(dir.path())).unwrap_err();
+        let e = LabelerError::from(
+            OnnxSentenceEncoder::load(&OnnxEncoderConfig::new(dir.path())).unwrap_err(),
+        );
         assert!(e.to_string().contains("hard link"), "{e}");
     }
 
@@ -277,6 +285,8 @@ fn wrong_models_are_clear_errors() {
     let dir = tempfile::tempdir().unwrap();
     std::fs::copy(data("tiny-bert/model.onnx"), dir.path().join("model.onnx")).unwrap();
     std::fs::write(dir.path().join("tokenizer.json"), "{").unwrap();
-    let e = OnnxSentenceEncoder::load(&OnnxEncoderConfig::new(dir.path())).unwrap_err();
+    let e = LabelerError::from(
+        OnnxSentenceEncoder::load(&OnnxEncoderConfig::new(dir.path())).unwrap_err(),
+    );
     assert_eq!(e.kind(), LabelerErrorKind::Tokenizer, "{e}");
 }

@@ -55,6 +55,10 @@ pub enum ModelError {
     #[error(transparent)]
     Chat(#[from] ChatError),
 
+    /// A tokenizer could not be built from its files or could not encode a text.
+    #[error("tokenizer: {0}")]
+    Tokenizer(String),
+
     /// Something took longer than it was allowed to.
     #[error("{what} timed out after {:.3}s", .after.as_secs_f64())]
     Timeout { what: String, after: Duration },
@@ -96,6 +100,7 @@ impl ModelError {
             ModelError::Chat(ChatError::Remote { .. }) => "remote",
             ModelError::Chat(ChatError::Timeout { .. }) => "timeout",
             ModelError::Chat(ChatError::BadResponse { .. }) => "bad_response",
+            ModelError::Tokenizer(_) => "tokenizer",
             ModelError::Timeout { .. } => "timeout",
             ModelError::Backend(BackendError::QueueFull { .. }) => "busy",
             ModelError::Backend(BackendError::TimedOut { .. }) => "timeout",

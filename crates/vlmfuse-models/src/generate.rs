@@ -266,7 +266,12 @@ mod tests {
         let g = generate(&m, &vec![0], &GenerateOptions::greedy(0, &[]), None).unwrap();
         assert_eq!(g.tokens, vec![Vec::<u32>::new()]);
         let cancel = AtomicBool::new(true);
-        let e = generate(&m, &vec![0], &GenerateOptions::greedy(3, &[]), Some(&cancel));
+        let e = generate(
+            &m,
+            &vec![0],
+            &GenerateOptions::greedy(3, &[]),
+            Some(&cancel),
+        );
         assert!(matches!(e, Err(ModelError::Timeout { .. })));
     }
 

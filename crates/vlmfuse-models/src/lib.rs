@@ -11,6 +11,7 @@ pub mod lora;
 pub mod models;
 pub mod ops;
 pub mod reporter;
+pub mod text;
 pub mod weights;
 
 pub use device::parse_device;

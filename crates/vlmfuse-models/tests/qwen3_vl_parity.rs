@@ -12,8 +12,7 @@ use candle_core::DType;
 use serde_json::Value;
 use vlmfuse_models::generate::argmax_rows;
 use vlmfuse_models::models::qwen3_vl::{
-    Cache, LoadOptions, Qwen3Vl, Qwen3VlProcessor, Sequence, VideoProcessor,
-    VideoProcessorConfig,
+    Cache, LoadOptions, Qwen3Vl, Qwen3VlProcessor, Sequence, VideoProcessor, VideoProcessorConfig,
 };
 use vlmfuse_models::{FrameRef, ModelError, WeightSource};
 use vlmfuse_testkit_models::fixtures::qwen3_vl::parity_frame;

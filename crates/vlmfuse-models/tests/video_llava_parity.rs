@@ -25,7 +25,13 @@ fn greedy(
     stop: &[u32],
     cache: &mut KvCache,
 ) -> Result<Vec<Vec<u32>>, ModelError> {
-    let g = generate_with(model, inputs, cache, &GenerateOptions::greedy(n, stop), None)?;
+    let g = generate_with(
+        model,
+        inputs,
+        cache,
+        &GenerateOptions::greedy(n, stop),
+        None,
+    )?;
     Ok((0..g.tokens.len()).map(|r| g.with_stop(r)).collect())
 }
 
@@ -449,8 +455,7 @@ fn one_model_serves_requests_one_after_another() {
     assert_eq!(first, again, "a previous request leaked into the next");
     // Stopping at EOS keeps the stop token and ends the row.
     let stop = [first[0][2]];
-    let cut = greedy(&model, &inputs, 6, &stop, &mut cache)
-        .unwrap();
+    let cut = greedy(&model, &inputs, 6, &stop, &mut cache).unwrap();
     assert_eq!(cut[0], first[0][..3].to_vec());
 }
 

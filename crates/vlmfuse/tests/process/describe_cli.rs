@@ -146,10 +146,15 @@ fn describe_dumps_what_the_model_crate_computes_on_both_fixtures() {
                         grid_thw: [t, h, w],
                     }),
                 };
-                generate(&m, &vec![seq], &GenerateOptions::greedy(MAX_NEW, p.eos_ids()), None)
-                    .unwrap()
-                    .tokens
-                    .remove(0)
+                generate(
+                    &m,
+                    &vec![seq],
+                    &GenerateOptions::greedy(MAX_NEW, p.eos_ids()),
+                    None,
+                )
+                .unwrap()
+                .tokens
+                .remove(0)
             }
             _ => {
                 let src = WeightSource::local(&s.llava);

@@ -110,11 +110,7 @@ impl Family for Qwen3VlFamily {
             return Ok(None);
         };
         let d = self.model.config().vision.patch_dim();
-        let t = Tensor::from_slice(
-            &v.pixel_values,
-            (v.pixel_values.len() / d, d),
-            &Device::Cpu,
-        )?;
+        let t = Tensor::from_slice(&v.pixel_values, (v.pixel_values.len() / d, d), &Device::Cpu)?;
         let [gt, gh, gw] = v.grid_thw;
         let grid = serde_json::json!({
             "model_type": "qwen3_vl", "t": gt, "h": gh, "w": gw,

@@ -25,10 +25,10 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 
 pub use config::{FeatureLayers, SelectStrategy, VideoLlavaConfig};
+pub use family::VideoLlavaFamily;
 pub use processor::{
     Arith, EncodedBatch, ImagePixels, ImageProcessor, Resample, VideoLlavaProcessor, VideoPixels,
 };
-pub use family::VideoLlavaFamily;
 pub use text::KvCache;
 
 use crate::lora::{load_adapter, merge_adapter_mapped};

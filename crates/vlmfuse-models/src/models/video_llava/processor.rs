@@ -5,7 +5,6 @@
 //! The pixels come from [`crate::imaging`]: the video processor with torch's arithmetic, the
 //! image processor with Pillow's, each reproduced bit for bit.
 
-
 use tokenizers::Tokenizer;
 
 use super::config::{SelectStrategy, VideoLlavaConfig};

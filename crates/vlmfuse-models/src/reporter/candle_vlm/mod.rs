@@ -7,8 +7,8 @@
 mod config;
 mod reporter;
 
-pub use config::{parse_dtype, CandleVlmConfig, RawCandleVlmConfig, DEFAULT_QWEN_FRAMES};
 pub use crate::models::family::{
     spread_indices, supported_model_types, AnyFamily, InputView, Prepared,
 };
+pub use config::{parse_dtype, CandleVlmConfig, RawCandleVlmConfig, DEFAULT_QWEN_FRAMES};
 pub use reporter::{CandleVlmReporter, Generation, Trace};

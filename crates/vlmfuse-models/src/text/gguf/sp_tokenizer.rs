@@ -9,7 +9,7 @@
 //! transformers encode Gemma; `tests/gguf.rs` checks the ids against transformers on the real
 //! 262k vocabulary.
 
-use crate::LabelerError;
+use crate::ModelError;
 use candle_core::quantized::gguf_file::{Content, Value};
 use std::collections::HashMap;
 
@@ -30,15 +30,15 @@ pub struct SpTokenizer {
     add_space_prefix: bool,
 }
 
-fn md<'a>(ct: &'a Content, key: &str) -> Result<&'a Value, LabelerError> {
+fn md<'a>(ct: &'a Content, key: &str) -> Result<&'a Value, ModelError> {
     ct.metadata
         .get(key)
-        .ok_or_else(|| LabelerError::Tokenizer(format!("GGUF has no {key}")))
+        .ok_or_else(|| ModelError::Tokenizer(format!("GGUF has no {key}")))
 }
 
 impl SpTokenizer {
-    pub fn from_gguf(ct: &Content) -> Result<Self, LabelerError> {
-        let err = |e: candle_core::Error| LabelerError::Tokenizer(e.to_string());
+    pub fn from_gguf(ct: &Content) -> Result<Self, ModelError> {
+        let err = |e: candle_core::Error| ModelError::Tokenizer(e.to_string());
         let tokens = md(ct, "tokenizer.ggml.tokens")?.to_vec().map_err(err)?;
         let pieces: Vec<String> = tokens
             .iter()
@@ -66,7 +66,7 @@ impl SpTokenizer {
             None => vec![TYPE_NORMAL; pieces.len()],
         };
         if scores.len() != pieces.len() || types.len() != pieces.len() {
-            return Err(LabelerError::Tokenizer(
+            return Err(ModelError::Tokenizer(
                 "GGUF tokens, scores and token types differ in length".into(),
             ));
         }

@@ -14,8 +14,8 @@
 //! The constrained decoder needs the bytes each token spells; [`GgufTokenizer::token_bytes`]
 //! gives them (`None` for control tokens, which never appear in an answer).
 
-use crate::sp_tokenizer::SpTokenizer;
-use crate::LabelerError;
+use super::sp_tokenizer::SpTokenizer;
+use crate::ModelError;
 use aho_corasick::{AhoCorasick, MatchKind};
 use candle_core::quantized::gguf_file::{Content, Value};
 use std::collections::HashMap;
@@ -44,7 +44,7 @@ fn split_regex(pre: &str) -> Option<&'static str> {
 }
 
 /// GPT-2's reversible byte ↔ printable-character table used by byte-level BPE vocabularies.
-pub(crate) fn bytes_to_unicode() -> [char; 256] {
+pub fn bytes_to_unicode() -> [char; 256] {
     let mut table = ['\0'; 256];
     let mut extra = 0u32;
     for b in 0..256u32 {
@@ -65,10 +65,10 @@ fn md<'a>(ct: &'a Content, key: &str) -> Option<&'a Value> {
     ct.metadata.get(key)
 }
 
-fn md_strings(ct: &Content, key: &str) -> Result<Vec<String>, LabelerError> {
-    let err = |e: candle_core::Error| LabelerError::Tokenizer(format!("{key}: {e}"));
+fn md_strings(ct: &Content, key: &str) -> Result<Vec<String>, ModelError> {
+    let err = |e: candle_core::Error| ModelError::Tokenizer(format!("{key}: {e}"));
     md(ct, key)
-        .ok_or_else(|| LabelerError::Tokenizer(format!("GGUF has no {key}")))?
+        .ok_or_else(|| ModelError::Tokenizer(format!("GGUF has no {key}")))?
         .to_vec()
         .map_err(err)?
         .iter()
@@ -76,11 +76,11 @@ fn md_strings(ct: &Content, key: &str) -> Result<Vec<String>, LabelerError> {
         .collect()
 }
 
-fn md_types(ct: &Content, n: usize) -> Result<Vec<i32>, LabelerError> {
+fn md_types(ct: &Content, n: usize) -> Result<Vec<i32>, ModelError> {
     match md(ct, "tokenizer.ggml.token_type") {
         None => Ok(vec![1; n]),
         Some(v) => {
-            let err = |e: candle_core::Error| LabelerError::Tokenizer(format!("token_type: {e}"));
+            let err = |e: candle_core::Error| ModelError::Tokenizer(format!("token_type: {e}"));
             let t: Vec<i32> = v
                 .to_vec()
                 .map_err(err)?
@@ -88,7 +88,7 @@ fn md_types(ct: &Content, n: usize) -> Result<Vec<i32>, LabelerError> {
                 .map(|x| x.to_i32().map_err(err))
                 .collect::<Result<_, _>>()?;
             if t.len() != n {
-                return Err(LabelerError::Tokenizer(
+                return Err(ModelError::Tokenizer(
                     "GGUF tokens and token types differ in length".into(),
                 ));
             }
@@ -119,7 +119,7 @@ pub struct GgufTokenizer {
 }
 
 impl GgufTokenizer {
-    pub fn from_gguf(ct: &Content) -> Result<Self, LabelerError> {
+    pub fn from_gguf(ct: &Content) -> Result<Self, ModelError> {
         let model = md(ct, "tokenizer.ggml.model")
             .and_then(|v| v.to_string().ok())
             .cloned()
@@ -158,7 +158,7 @@ impl GgufTokenizer {
                 let specials = AhoCorasick::builder()
                     .match_kind(MatchKind::LeftmostLongest)
                     .build(&pats)
-                    .map_err(|e| LabelerError::Tokenizer(e.to_string()))?;
+                    .map_err(|e| ModelError::Tokenizer(e.to_string()))?;
                 let bytes = tokens
                     .iter()
                     .zip(&types)
@@ -183,7 +183,7 @@ impl GgufTokenizer {
                 )
             }
             other => {
-                return Err(LabelerError::Tokenizer(format!(
+                return Err(ModelError::Tokenizer(format!(
                     "unsupported GGUF tokenizer model {other:?} (supported: gpt2 byte-level BPE, \
                      llama SentencePiece)"
                 )))
@@ -243,11 +243,11 @@ impl GgufTokenizer {
 
     /// Encodes a rendered prompt, matching control and user-defined tokens whole. Adds BOS when
     /// the file asks for it and the text does not start with it already.
-    pub fn encode_prompt(&self, text: &str) -> Result<Vec<u32>, LabelerError> {
+    pub fn encode_prompt(&self, text: &str) -> Result<Vec<u32>, ModelError> {
         let mut ids = match &self.engine {
             Engine::Bpe(tok) => tok
                 .encode(text, false)
-                .map_err(|e| LabelerError::Tokenizer(e.to_string()))?
+                .map_err(|e| ModelError::Tokenizer(e.to_string()))?
                 .get_ids()
                 .to_vec(),
             Engine::Sp {
@@ -299,8 +299,8 @@ fn build_bpe(
     types: &[i32],
     merges: &[String],
     pre: &str,
-) -> Result<BpeBuild, LabelerError> {
-    let terr = |e: tokenizers::Error| LabelerError::Tokenizer(e.to_string());
+) -> Result<BpeBuild, ModelError> {
+    let terr = |e: tokenizers::Error| ModelError::Tokenizer(e.to_string());
     let b2u = bytes_to_unicode();
     let u2b: HashMap<char, u8> = b2u.iter().enumerate().map(|(b, &c)| (c, b as u8)).collect();
     let in_alphabet = |s: &str| s.chars().all(|c| u2b.contains_key(&c));
@@ -326,7 +326,7 @@ fn build_bpe(
         .map(|m| {
             m.split_once(' ')
                 .map(|(a, b)| (a.to_string(), b.to_string()))
-                .ok_or_else(|| LabelerError::Tokenizer(format!("malformed merge {m:?}")))
+                .ok_or_else(|| ModelError::Tokenizer(format!("malformed merge {m:?}")))
         })
         .collect::<Result<_, _>>()?;
     let bpe = BPE::builder()

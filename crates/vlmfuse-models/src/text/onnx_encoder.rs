@@ -19,8 +19,9 @@ use vlmfuse_ort::ort::session::{Session, SessionInputValue};
 use vlmfuse_ort::ort::value::{TensorElementType, TensorRef};
 use vlmfuse_ort::{describe_outlets, OrtError, SessionOptions};
 
-use crate::encoder::length_groups;
-use crate::{LabelerError, SentenceEncoder};
+use super::encoder::length_groups;
+use super::SentenceEncoder;
+use crate::ModelError;
 
 /// Model files tried in order when none is named.
 pub const ENCODER_MODEL_CANDIDATES: &[&str] = &["model.onnx", "onnx/model.onnx"];
@@ -46,15 +47,6 @@ impl OnnxEncoderConfig {
             model_file: None,
             max_length: 128,
             session: SessionOptions::default(),
-        }
-    }
-}
-
-impl From<OrtError> for LabelerError {
-    fn from(e: OrtError) -> Self {
-        match e {
-            OrtError::LibraryMissing { .. } => LabelerError::AssetMissing(e.to_string()),
-            other => LabelerError::Model(other.to_string()),
         }
     }
 }
@@ -93,9 +85,9 @@ impl std::fmt::Debug for OnnxSentenceEncoder {
 impl OnnxSentenceEncoder {
     /// Loads the tokenizer and the session, checks the model's signature and encodes one text,
     /// so that a model that cannot run fails at start-up.
-    pub fn load(cfg: &OnnxEncoderConfig) -> Result<Self, LabelerError> {
+    pub fn load(cfg: &OnnxEncoderConfig) -> Result<Self, ModelError> {
         if cfg.max_length < 2 {
-            return Err(LabelerError::Config(format!(
+            return Err(ModelError::BadConfig(format!(
                 "max_length {} leaves no room for text between [CLS] and [SEP]",
                 cfg.max_length
             )));
@@ -103,7 +95,7 @@ impl OnnxSentenceEncoder {
         let model_path = find_model(cfg)?;
         let tok_path = find_tokenizer(&cfg.model_dir, &model_path)?;
         let mut tokenizer = Tokenizer::from_file(&tok_path)
-            .map_err(|e| LabelerError::Tokenizer(format!("{}: {e}", tok_path.display())))?;
+            .map_err(|e| ModelError::Tokenizer(format!("{}: {e}", tok_path.display())))?;
         // tokenizer.json of MiniLM pads to a fixed 128; padding is done here, per length group,
         // with the pad id the tokenizer names (masked out either way).
         let pad_id = tokenizer
@@ -117,10 +109,10 @@ impl OnnxSentenceEncoder {
                 max_length: cfg.max_length,
                 ..Default::default()
             }))
-            .map_err(|e| LabelerError::Tokenizer(e.to_string()))?;
+            .map_err(|e| ModelError::Tokenizer(e.to_string()))?;
 
         let session = vlmfuse_ort::session_from_file(&model_path, &cfg.session)?;
-        let sig = |reason: String| -> LabelerError {
+        let sig = |reason: String| -> ModelError {
             OrtError::Signature {
                 path: model_path.clone(),
                 reason,
@@ -205,11 +197,11 @@ impl OnnxSentenceEncoder {
     }
 
     /// Token ids of each text as the model sees them (special tokens, truncation, no padding).
-    pub fn token_ids(&self, texts: &[&str]) -> Result<Vec<Vec<u32>>, LabelerError> {
+    pub fn token_ids(&self, texts: &[&str]) -> Result<Vec<Vec<u32>>, ModelError> {
         let enc = self
             .tokenizer
             .encode_batch(texts.to_vec(), true)
-            .map_err(|e| LabelerError::Tokenizer(e.to_string()))?;
+            .map_err(|e| ModelError::Tokenizer(e.to_string()))?;
         Ok(enc
             .iter()
             .map(|e| {
@@ -233,14 +225,14 @@ impl SentenceEncoder for OnnxSentenceEncoder {
         self.dim
     }
 
-    fn encode(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>, LabelerError> {
+    fn encode(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>, ModelError> {
         if texts.is_empty() {
             return Ok(Vec::new());
         }
         let enc = self
             .tokenizer
             .encode_batch(texts.to_vec(), true)
-            .map_err(|e| LabelerError::Tokenizer(e.to_string()))?;
+            .map_err(|e| ModelError::Tokenizer(e.to_string()))?;
         // Padding every text to the longest one wastes about half the compute on a round's
         // clauses (measured: 493 positions for 257 tokens); texts are therefore run in groups of
         // similar length, chosen to minimise padded positions plus a per-run overhead. Results
@@ -263,7 +255,7 @@ const RUN_OVERHEAD_TOKENS: usize = 16;
 
 impl OnnxSentenceEncoder {
     /// One run over texts padded to the longest of them; unit embeddings in order.
-    fn run_group(&self, enc: &[&Encoding]) -> Result<Vec<Vec<f32>>, LabelerError> {
+    fn run_group(&self, enc: &[&Encoding]) -> Result<Vec<Vec<f32>>, ModelError> {
         let n = enc.len();
         let seq = enc.iter().map(|e| e.len()).max().unwrap_or(0);
         let mut ids = Vec::with_capacity(n * seq);
@@ -278,7 +270,7 @@ impl OnnxSentenceEncoder {
             types.extend(e.get_type_ids().iter().map(|&t| t as i64));
             types.extend(std::iter::repeat_n(0, pad));
         }
-        let run_err = |e: vlmfuse_ort::ort::Error| LabelerError::from(OrtError::Run(e.to_string()));
+        let run_err = |e: vlmfuse_ort::ort::Error| ModelError::from(OrtError::Run(e.to_string()));
         let shape = [n, seq];
         let mut inputs: Vec<(&str, SessionInputValue<'_>)> = vec![
             (
@@ -305,14 +297,17 @@ impl OnnxSentenceEncoder {
         let mut session = self.session.lock().unwrap_or_else(|p| p.into_inner());
         let outputs = session.run(inputs).map_err(run_err)?;
         let value = outputs.get(&self.output_name).ok_or_else(|| {
-            LabelerError::Model(format!("no `{}` in the outputs", self.output_name))
+            ModelError::from(OrtError::Run(format!(
+                "no `{}` in the outputs",
+                self.output_name
+            )))
         })?;
         let (oshape, data) = value.try_extract_tensor::<f32>().map_err(run_err)?;
         let bad_shape = || {
-            LabelerError::Model(format!(
+            ModelError::Onnx(OrtError::Run(format!(
                 "`{}` has shape {oshape:?} for a batch of {n} × {seq} tokens",
                 self.output_name
-            ))
+            )))
         };
         let rows: Vec<Vec<f32>> = match self.output {
             Output::Tokens => {
@@ -365,7 +360,7 @@ fn unit(v: Vec<f32>) -> Vec<f32> {
     v.into_iter().map(|x| (x as f64 / n) as f32).collect()
 }
 
-fn find_model(cfg: &OnnxEncoderConfig) -> Result<PathBuf, LabelerError> {
+fn find_model(cfg: &OnnxEncoderConfig) -> Result<PathBuf, ModelError> {
     let candidates: Vec<PathBuf> = match &cfg.model_file {
         Some(f) => vec![cfg.model_dir.join(f)],
         None => ENCODER_MODEL_CANDIDATES
@@ -377,21 +372,15 @@ fn find_model(cfg: &OnnxEncoderConfig) -> Result<PathBuf, LabelerError> {
         .iter()
         .find(|p| p.is_file())
         .cloned()
-        .ok_or_else(|| {
-            LabelerError::AssetMissing(format!(
-                "no ONNX sentence encoder at {}",
-                candidates
-                    .iter()
-                    .map(|p| p.display().to_string())
-                    .collect::<Vec<_>>()
-                    .join(" or ")
-            ))
+        .ok_or_else(|| ModelError::MissingWeights {
+            file: "ONNX sentence encoder".into(),
+            searched: candidates.clone(),
         })
 }
 
 /// `tokenizer.json` in the model directory, beside the ONNX file, or one level above it (HF
 /// repos keep the ONNX files in `onnx/` and the tokenizer at the top).
-fn find_tokenizer(dir: &Path, model: &Path) -> Result<PathBuf, LabelerError> {
+fn find_tokenizer(dir: &Path, model: &Path) -> Result<PathBuf, ModelError> {
     let mut searched = vec![dir.join("tokenizer.json")];
     if let Some(parent) = model.parent() {
         searched.push(parent.join("tokenizer.json"));
@@ -404,15 +393,9 @@ fn find_tokenizer(dir: &Path, model: &Path) -> Result<PathBuf, LabelerError> {
         .iter()
         .find(|p| p.is_file())
         .cloned()
-        .ok_or_else(|| {
-            LabelerError::AssetMissing(format!(
-                "no tokenizer.json at {}",
-                searched
-                    .iter()
-                    .map(|p| p.display().to_string())
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            ))
+        .ok_or_else(|| ModelError::MissingWeights {
+            file: "tokenizer.json".into(),
+            searched: searched.clone(),
         })
 }
 
@@ -435,7 +418,7 @@ mod tests {
     fn missing_files_say_where_they_were_looked_for() {
         let dir = tempfile::tempdir().unwrap();
         let e = OnnxSentenceEncoder::load(&OnnxEncoderConfig::new(dir.path())).unwrap_err();
-        assert_eq!(e.kind(), crate::LabelerErrorKind::AssetMissing);
+        assert_eq!(e.kind(), "missing_weights");
         assert!(e.to_string().contains("onnx/model.onnx"), "{e}");
         std::fs::write(dir.path().join("model.onnx"), b"x").unwrap();
         let e = OnnxSentenceEncoder::load(&OnnxEncoderConfig::new(dir.path())).unwrap_err();
@@ -444,7 +427,7 @@ mod tests {
         cfg.max_length = 1;
         assert_eq!(
             OnnxSentenceEncoder::load(&cfg).unwrap_err().kind(),
-            crate::LabelerErrorKind::Config
+            "bad_config"
         );
     }
 }

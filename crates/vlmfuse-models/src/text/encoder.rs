@@ -5,7 +5,7 @@
 //! Keeping the engine behind this trait lets both run the very same matcher, so the labeler that
 //! is evaluated is the labeler that is served, whatever the engine.
 
-use crate::LabelerError;
+use crate::ModelError;
 
 /// A sentence encoder: mean-pooled, L2-normalised embeddings.
 ///
@@ -19,7 +19,7 @@ pub trait SentenceEncoder: Send + Sync {
     /// One unit-L2 embedding per text, in order, computed in one batched pass (padding with an
     /// attention mask), so that all clauses of all answers of a round cost one forward call.
     /// An empty input gives an empty output.
-    fn encode(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>, LabelerError>;
+    fn encode(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>, ModelError>;
 }
 
 /// Groups of text indices, each group run as one padded batch: both encoder engines use it, so

@@ -10,8 +10,8 @@
 //! a multi-token chunk fed after a cache. Qwen2 prefills the whole prompt per answer, which is
 //! correct, only slower.
 
-use crate::llm::gemma3::Gemma3;
-use crate::LabelerError;
+use super::gemma3::Gemma3;
+use crate::ModelError;
 use candle_core::quantized::gguf_file::Content;
 use candle_core::{Device, Tensor};
 use candle_transformers::models::{quantized_llama, quantized_qwen2, quantized_qwen3};
@@ -28,13 +28,13 @@ pub enum Family {
 }
 
 impl Family {
-    pub fn from_architecture(arch: &str) -> Result<Self, LabelerError> {
+    pub fn from_architecture(arch: &str) -> Result<Self, ModelError> {
         match arch {
             "llama" => Ok(Family::Llama),
             "qwen2" => Ok(Family::Qwen2),
             "qwen3" => Ok(Family::Qwen3),
             "gemma3" => Ok(Family::Gemma3),
-            other => Err(LabelerError::Config(format!(
+            other => Err(ModelError::BadConfig(format!(
                 "unsupported GGUF architecture {other:?} (supported: llama, qwen2, qwen3, gemma3)"
             ))),
         }
@@ -76,13 +76,13 @@ impl Decoder {
         ct: Content,
         reader: &mut R,
         device: &Device,
-    ) -> Result<Self, LabelerError> {
+    ) -> Result<Self, ModelError> {
         let arch = ct
             .metadata
             .get("general.architecture")
             .and_then(|v| v.to_string().ok())
             .cloned()
-            .ok_or_else(|| LabelerError::Model("GGUF has no general.architecture".into()))?;
+            .ok_or_else(|| ModelError::BadConfig("GGUF has no general.architecture".into()))?;
         let family = Family::from_architecture(&arch)?;
         let w = match family {
             Family::Llama => Weights::Llama(quantized_llama::ModelWeights::from_gguf(
@@ -141,9 +141,11 @@ impl Decoder {
     }
 
     /// Feeds `ids` after the cached tokens and returns the logits for the next token.
-    pub fn feed(&mut self, ids: &[u32]) -> Result<Vec<f32>, LabelerError> {
+    pub fn feed(&mut self, ids: &[u32]) -> Result<Vec<f32>, ModelError> {
         if ids.is_empty() {
-            return Err(LabelerError::Internal("feed called with no tokens".into()));
+            return Err(ModelError::InvalidInput(
+                "feed called with no tokens".into(),
+            ));
         }
         let x = Tensor::new(ids, &self.device)?.unsqueeze(0)?;
         let logits = match &mut self.w {

@@ -8,8 +8,9 @@
 //! caller still makes one call, and the result is identical to per-text encoding up to float
 //! rounding (padding is masked out of attention and pooling).
 
-use crate::encoder::length_groups;
-use crate::{LabelerError, SentenceEncoder};
+use super::encoder::length_groups;
+use super::SentenceEncoder;
+use crate::ModelError;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use candle_transformers::models::bert::{BertModel, Config as BertConfig};
@@ -33,14 +34,17 @@ pub struct CandleEncoder {
 
 impl CandleEncoder {
     /// Loads the three files of a sentence-transformers BERT export (blocking).
-    pub fn load(model_dir: &Path) -> Result<Self, LabelerError> {
+    pub fn load(model_dir: &Path) -> Result<Self, ModelError> {
         let device = Device::Cpu;
         let f = |n: &str| {
             let p = model_dir.join(n);
             if p.is_file() {
                 Ok(p)
             } else {
-                Err(LabelerError::AssetMissing(p.display().to_string()))
+                Err(ModelError::MissingWeights {
+                    file: n.to_string(),
+                    searched: vec![model_dir.to_path_buf()],
+                })
             }
         };
         let (weights, tok_path, conf_path) = (
@@ -48,14 +52,21 @@ impl CandleEncoder {
             f("tokenizer.json")?,
             f("config.json")?,
         );
-        let config: BertConfig = serde_json::from_str(&std::fs::read_to_string(conf_path)?)
-            .map_err(|e| LabelerError::Model(format!("config.json: {e}")))?;
+        let text = std::fs::read_to_string(&conf_path).map_err(|e| ModelError::Io {
+            path: conf_path.clone(),
+            source: e,
+        })?;
+        let config: BertConfig =
+            serde_json::from_str(&text).map_err(|e| ModelError::BadWeights {
+                path: conf_path.clone(),
+                reason: e.to_string(),
+            })?;
         // SAFETY: the file is memory-mapped read-only; it must not be modified while loaded,
         // which holds for the asset cache.
         let vb = unsafe { VarBuilder::from_mmaped_safetensors(&[weights], DType::F32, &device)? };
         let model = BertModel::load(vb, &config)?;
         let mut tokenizer =
-            Tokenizer::from_file(tok_path).map_err(|e| LabelerError::Tokenizer(e.to_string()))?;
+            Tokenizer::from_file(tok_path).map_err(|e| ModelError::Tokenizer(e.to_string()))?;
         // Padding is done here per bucket, not by the tokenizer over the whole batch.
         tokenizer.with_padding(None);
         tokenizer
@@ -63,7 +74,7 @@ impl CandleEncoder {
                 max_length: MAX_TOKENS,
                 ..Default::default()
             }))
-            .map_err(|e| LabelerError::Tokenizer(e.to_string()))?;
+            .map_err(|e| ModelError::Tokenizer(e.to_string()))?;
         Ok(Self {
             model,
             tokenizer,
@@ -73,7 +84,7 @@ impl CandleEncoder {
     }
 
     /// Mean-pooled, unit-L2 embeddings of equally padded rows, shape (n, dim).
-    fn forward(&self, rows: &[&[u32]]) -> Result<Tensor, LabelerError> {
+    fn forward(&self, rows: &[&[u32]]) -> Result<Tensor, ModelError> {
         let len = rows.iter().map(|r| r.len()).max().unwrap_or(0).max(1);
         let n = rows.len();
         let mut ids = vec![0u32; n * len];
@@ -104,14 +115,14 @@ impl SentenceEncoder for CandleEncoder {
         self.dim
     }
 
-    fn encode(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>, LabelerError> {
+    fn encode(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>, ModelError> {
         if texts.is_empty() {
             return Ok(Vec::new());
         }
         let enc = self
             .tokenizer
             .encode_batch(texts.to_vec(), true)
-            .map_err(|e| LabelerError::Tokenizer(e.to_string()))?;
+            .map_err(|e| ModelError::Tokenizer(e.to_string()))?;
         let lens: Vec<usize> = enc.iter().map(|e| e.get_ids().len()).collect();
         let mut out = vec![Vec::new(); texts.len()];
         for group in length_groups(&lens, CALL_OVERHEAD_TOKENS) {
