@@ -1,17 +1,20 @@
 //! A SentencePiece-BPE encoder built from the vocabulary inside a GGUF file.
 //!
 //! The gemma GGUF ships no `tokenizer.json`; only `tokenizer.ggml.tokens`, `.scores` and
-//! `.token_type`. Rather than guessing a greedy longest-match (which produces token sequences the
-//! model never saw in training), this re-implements SentencePiece's BPE encoding: start from
-//! characters, repeatedly merge the adjacent pair whose concatenation is a vocabulary piece with
-//! the highest score (leftmost on ties), and fall back to `<0xXX>` byte pieces for characters not
-//! in the vocabulary. The whole text is one sequence (no split at spaces), as llama.cpp and
-//! transformers encode Gemma; `tests/gguf.rs` checks the ids against transformers on the real
-//! 262k vocabulary.
+//! `.token_type`. SentencePiece's BPE repeatedly merges the adjacent pair whose concatenation is a
+//! vocabulary piece with the highest score, and falls back to `<0xXX>` byte pieces for characters
+//! not in the vocabulary. The `tokenizers` crate's BPE model runs exactly that once it is given
+//! merges ranked by score: as transformers' converter does for SentencePiece vocabularies, every
+//! split of a piece into two vocabulary pieces is a merge, ranked by the piece's score (then by
+//! the ids, for a stable order), with byte fallback on. The whole text is one sequence (no split
+//! at spaces), as llama.cpp and transformers encode Gemma; `tests/gguf.rs` checks the ids
+//! against transformers on the real 262k vocabulary.
 
 use crate::ModelError;
 use candle_core::quantized::gguf_file::{Content, Value};
 use std::collections::HashMap;
+use tokenizers::models::bpe::BPE;
+use tokenizers::Model;
 
 const SPACE: char = '\u{2581}';
 
@@ -20,11 +23,12 @@ const TYPE_NORMAL: i32 = 1;
 const TYPE_USER_DEFINED: i32 = 4;
 const TYPE_BYTE: i32 = 6;
 
-#[derive(Debug, Clone)]
+#[derive(Clone)]
 pub struct SpTokenizer {
     pieces: Vec<String>,
-    /// Pieces that BPE may produce (normal and user-defined), with their scores.
-    merge: HashMap<String, (u32, f32)>,
+    /// Pieces that BPE may produce (normal and user-defined): their ids.
+    ids: HashMap<String, u32>,
+    bpe: BPE,
     bytes: [Option<u32>; 256],
     bos: Option<u32>,
     add_space_prefix: bool,
@@ -70,12 +74,12 @@ impl SpTokenizer {
                 "GGUF tokens, scores and token types differ in length".into(),
             ));
         }
-        let mut merge = HashMap::with_capacity(pieces.len());
+        let mut ids: HashMap<String, u32> = HashMap::with_capacity(pieces.len());
         let mut bytes = [None; 256];
         for (i, p) in pieces.iter().enumerate() {
             match types[i] {
                 TYPE_NORMAL | TYPE_USER_DEFINED => {
-                    merge.entry(p.clone()).or_insert((i as u32, scores[i]));
+                    ids.entry(p.clone()).or_insert(i as u32);
                 }
                 TYPE_BYTE => {
                     if let Some(h) = p.strip_prefix("<0x").and_then(|s| s.strip_suffix('>')) {
@@ -87,6 +91,42 @@ impl SpTokenizer {
                 _ => {}
             }
         }
+        // Every way to build a mergeable piece from two mergeable pieces, best score first.
+        let mut ranked: Vec<(f32, u32, u32, u32)> = Vec::new();
+        for (p, &id) in &ids {
+            for (k, _) in p.char_indices().skip(1) {
+                let (l, r) = p.split_at(k);
+                if let (Some(&li), Some(&ri)) = (ids.get(l), ids.get(r)) {
+                    ranked.push((scores[id as usize], id, li, ri));
+                }
+            }
+        }
+        ranked.sort_by(|a, b| {
+            b.0.total_cmp(&a.0)
+                .then(a.1.cmp(&b.1))
+                .then(a.2.cmp(&b.2))
+                .then(a.3.cmp(&b.3))
+        });
+        let merges: Vec<(String, String)> = ranked
+            .iter()
+            .map(|&(_, _, l, r)| (pieces[l as usize].clone(), pieces[r as usize].clone()))
+            .collect();
+        // The BPE vocabulary: mergeable pieces and byte pieces (what byte fallback emits).
+        let vocab: tokenizers::models::bpe::Vocab = ids
+            .iter()
+            .map(|(p, &i)| (p.clone(), i))
+            .chain(
+                bytes
+                    .iter()
+                    .flatten()
+                    .map(|&i| (pieces[i as usize].clone(), i)),
+            )
+            .collect();
+        let bpe = BPE::builder()
+            .vocab_and_merges(vocab, merges)
+            .byte_fallback(true)
+            .build()
+            .map_err(|e| ModelError::Tokenizer(e.to_string()))?;
         let bos = ct
             .metadata
             .get("tokenizer.ggml.bos_token_id")
@@ -98,7 +138,8 @@ impl SpTokenizer {
             .unwrap_or(false);
         Ok(Self {
             pieces,
-            merge,
+            ids,
+            bpe,
             bytes,
             bos,
             add_space_prefix,
@@ -115,7 +156,7 @@ impl SpTokenizer {
 
     /// The id of a piece as spelled in the vocabulary (spaces as U+2581), if it exists.
     pub fn piece_id(&self, piece: &str) -> Option<u32> {
-        self.merge.get(piece).map(|(id, _)| *id)
+        self.ids.get(piece).copied()
     }
 
     pub fn piece(&self, id: u32) -> Option<&str> {
@@ -131,56 +172,17 @@ impl SpTokenizer {
         // The whole text is one BPE sequence, as in llama.cpp and transformers: Gemma's
         // vocabulary has pieces that span a space (`",▁"`), which splitting at spaces first
         // would never produce.
-        let mut out = Vec::new();
-        if !norm.is_empty() {
-            self.encode_segment(&norm, &mut out);
+        if norm.is_empty() {
+            return Vec::new();
         }
-        out
-    }
-
-    fn lookup(&self, a: &str, b: &str) -> Option<(u32, f32)> {
-        let mut s = String::with_capacity(a.len() + b.len());
-        s.push_str(a);
-        s.push_str(b);
-        self.merge.get(&s).copied()
-    }
-
-    fn encode_segment(&self, seg: &str, out: &mut Vec<u32>) {
-        let mut syms: Vec<String> = seg.chars().map(String::from).collect();
-        let mut pair: Vec<Option<(u32, f32)>> = (0..syms.len().saturating_sub(1))
-            .map(|i| self.lookup(&syms[i], &syms[i + 1]))
-            .collect();
-        loop {
-            let mut best: Option<(usize, f32)> = None;
-            for (i, p) in pair.iter().enumerate() {
-                if let Some((_, s)) = p {
-                    if best.is_none_or(|(_, bs)| *s > bs) {
-                        best = Some((i, *s));
-                    }
-                }
-            }
-            let Some((i, _)) = best else { break };
-            let right = syms.remove(i + 1);
-            syms[i].push_str(&right);
-            pair.remove(i);
-            if i < pair.len() {
-                pair[i] = self.lookup(&syms[i], &syms[i + 1]);
-            }
-            if i > 0 {
-                pair[i - 1] = self.lookup(&syms[i - 1], &syms[i]);
-            }
-        }
-        for s in syms {
-            match self.merge.get(&s) {
-                Some((id, _)) => out.push(*id),
-                None => {
-                    for b in s.bytes() {
-                        if let Some(id) = self.bytes[b as usize] {
-                            out.push(id);
-                        }
-                    }
-                }
-            }
+        match self.bpe.tokenize(&norm) {
+            Ok(tokens) => tokens.into_iter().map(|t| t.id).collect(),
+            // Byte fallback covers every character, so BPE has no failure left but a bug;
+            // an empty encoding would silently drop the text, so spell it in bytes instead.
+            Err(_) => norm
+                .bytes()
+                .filter_map(|b| self.bytes[b as usize])
+                .collect(),
         }
     }
 
