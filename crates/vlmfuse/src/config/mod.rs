@@ -200,7 +200,8 @@ impl Config {
             l.max_body_bytes > 0
                 && l.concurrency_limit > 0
                 && l.max_batch_rounds > 0
-                && l.max_label_texts > 0,
+                && l.max_label_texts > 0
+                && l.max_context_dim > 0,
             "limits must be at least 1"
         );
         seconds("limits.request_timeout_s", l.request_timeout_s)?;

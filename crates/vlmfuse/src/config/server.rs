@@ -40,6 +40,11 @@ pub struct ServerConfig {
     /// Most open client connections; past it new connections wait, unserved, until one closes.
     #[arg(long, env = "VLMFUSE_MAX_CONNECTIONS", required = false)]
     pub max_connections: usize,
+    /// Free bytes the data directory's filesystem must keep; below it `/readyz` is 503 (the
+    /// store cannot be trusted to commit the next round), so a balancer stops sending writes
+    /// before SQLite fails them. 0 disables the check.
+    #[arg(long, env = "VLMFUSE_MIN_FREE_BYTES", required = false)]
+    pub min_free_bytes: u64,
 }
 
 impl Default for ServerConfig {
@@ -52,6 +57,7 @@ impl Default for ServerConfig {
             header_read_timeout_s: 10.0,
             idle_timeout_s: 60.0,
             max_connections: 1024,
+            min_free_bytes: 64 * 1024 * 1024,
         }
     }
 }
@@ -80,6 +86,11 @@ pub struct Limits {
     /// forgotten (pruned from the database).
     #[arg(long, env = "VLMFUSE_IDEMPOTENCY_TTL_S", required = false)]
     pub idempotency_ttl_s: f64,
+    /// Longest context vector a `/v1/fuse` round may carry (422 above). The first round fixes
+    /// the dimension for good and every round is kept in the bank, so an unbounded one lets a
+    /// single client cost memory and disk without limit.
+    #[arg(long, env = "VLMFUSE_MAX_CONTEXT_DIM", required = false)]
+    pub max_context_dim: usize,
 }
 
 impl Default for Limits {
@@ -91,6 +102,7 @@ impl Default for Limits {
             max_batch_rounds: 1024,
             max_label_texts: 64,
             idempotency_ttl_s: 86_400.0,
+            max_context_dim: 4096,
         }
     }
 }

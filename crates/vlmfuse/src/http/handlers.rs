@@ -139,15 +139,81 @@ pub async fn healthz() -> Response {
 }
 
 /// `GET /readyz`: each component's state; 503 when `/v1/infer` (if configured) cannot serve or
-/// the store refuses writes.
-pub async fn readyz(State(st): State<AppState>) -> Response {
-    let r = st.service.readiness();
+/// the store refuses writes. The route is open to anyone, so the reasons it gives name no
+/// internal address (`http://10.0.0.7:8000/v1/models` reads `<address>/v1/models`) unless the
+/// request carries the configured token; the full reasons are in the log either way.
+pub async fn readyz(State(st): State<AppState>, headers: HeaderMap) -> Response {
+    let mut r = st.service.readiness();
+    if !super::has_token(&st, &headers) {
+        redact_addresses(&mut r.body);
+    }
     let status = if r.ready {
         axum::http::StatusCode::OK
     } else {
         axum::http::StatusCode::SERVICE_UNAVAILABLE
     };
     (status, axum::Json(r.body)).into_response()
+}
+
+/// Replaces the `scheme://authority` of every URL in every string of `v` with `<address>`,
+/// keeping the path (which says what failed: `/v1/models`, `/v1/chat/completions`).
+fn redact_addresses(v: &mut Value) {
+    match v {
+        Value::String(s) if s.contains("://") => *s = redact_str(s),
+        Value::Array(a) => a.iter_mut().for_each(redact_addresses),
+        Value::Object(o) => o.values_mut().for_each(redact_addresses),
+        _ => {}
+    }
+}
+
+fn redact_str(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    let mut rest = s;
+    while let Some(i) = rest.find("://") {
+        // The scheme: letters, digits, `+`, `-`, `.` before `://`.
+        let start = rest[..i]
+            .rfind(|c: char| !(c.is_ascii_alphanumeric() || matches!(c, '+' | '-' | '.')))
+            .map_or(0, |j| j + 1);
+        let after = &rest[i + 3..];
+        let end = after
+            .find(|c: char| c == '/' || c.is_whitespace() || "\"'<>),;`".contains(c))
+            .unwrap_or(after.len());
+        if start == i {
+            // No scheme: not a URL.
+            out.push_str(&rest[..i + 3]);
+            rest = after;
+            continue;
+        }
+        out.push_str(&rest[..start]);
+        out.push_str("<address>");
+        rest = &after[end..];
+    }
+    out.push_str(rest);
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn addresses_are_redacted_paths_kept() {
+        assert_eq!(
+            redact_str("GET http://10.0.0.7:8000/v1/models: connection refused"),
+            "GET <address>/v1/models: connection refused"
+        );
+        assert_eq!(
+            redact_str("`https://user:pw@vllm.internal` and http://[::1]:9/x"),
+            "`<address>` and <address>/x"
+        );
+        assert_eq!(redact_str("no url :// here"), "no url :// here");
+        let mut v = serde_json::json!({"a": ["x http://h:1/p"], "b": {"c": "ftp://q"}, "d": 3});
+        redact_addresses(&mut v);
+        assert_eq!(
+            v,
+            serde_json::json!({"a": ["x <address>/p"], "b": {"c": "<address>"}, "d": 3})
+        );
+    }
 }
 
 /// `GET /metrics`: Prometheus text.

@@ -138,8 +138,33 @@ pub fn app(state: AppState) -> Router {
     app.fallback(handlers::not_found)
         .method_not_allowed_fallback(handlers::method_not_allowed)
         .layer(from_fn(track))
+        .layer(from_fn(close_on_refusal))
         .layer(from_fn_with_state(state.clone(), scope_metrics))
         .with_state(state)
+}
+
+/// A refusal of a request that came with a body (401, 405, 413, 429, a timeout, any error)
+/// says `Connection: close`: the body may be unread (an upload refused by a middleware), and
+/// the server will not read megabytes it refused only to keep the connection, so a client
+/// must not send its next request on this one expecting it to be served.
+async fn close_on_refusal(req: Request, next: Next) -> Response {
+    let has_body = req
+        .headers()
+        .get(axum::http::header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .is_some_and(|n| n > 0)
+        || req
+            .headers()
+            .contains_key(axum::http::header::TRANSFER_ENCODING);
+    let mut resp = next.run(req).await;
+    if has_body && (resp.status().is_client_error() || resp.status().is_server_error()) {
+        resp.headers_mut().insert(
+            axum::http::header::CONNECTION,
+            axum::http::HeaderValue::from_static("close"),
+        );
+    }
+    resp
 }
 
 /// Everything a request does runs with this service's metrics recorder in force.
@@ -162,17 +187,23 @@ async fn limit(State(st): State<AppState>, req: Request, next: Next) -> Result<R
 }
 
 async fn auth(State(st): State<AppState>, req: Request, next: Next) -> Result<Response, ApiError> {
-    if let Some(key) = &st.service.config().server.api_key {
-        let given = req
-            .headers()
-            .get(AUTHORIZATION)
-            .and_then(|v| v.to_str().ok())
-            .and_then(bearer_token);
-        if !given.is_some_and(|t| constant_time_eq(t.as_bytes(), key.as_bytes())) {
-            return Err(ApiError::Unauthorized);
-        }
+    if st.service.config().server.api_key.is_some() && !has_token(&st, req.headers()) {
+        return Err(ApiError::Unauthorized);
     }
     Ok(next.run(req).await)
+}
+
+/// Whether the request carries the configured bearer token (false when none is configured: then
+/// nothing distinguishes the operator from anyone else).
+pub(crate) fn has_token(st: &AppState, headers: &axum::http::HeaderMap) -> bool {
+    let Some(key) = &st.service.config().server.api_key else {
+        return false;
+    };
+    headers
+        .get(AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .and_then(bearer_token)
+        .is_some_and(|t| constant_time_eq(t.as_bytes(), key.as_bytes()))
 }
 
 /// The token of an `Authorization: Bearer <token>` header. The scheme is case-insensitive

@@ -101,7 +101,7 @@ impl Service {
                 &serde_json::to_vec(&body).unwrap_or_default(),
             ]),
         });
-        let (records, batch) = parse_fuse_body(body, self.cfg.limits.max_batch_rounds)?;
+        let (records, batch) = parse_fuse_body(body, &self.cfg.limits)?;
         let records = records
             .into_iter()
             .map(|rec| {
@@ -293,12 +293,16 @@ impl Service {
     }
 }
 
+/// The keys of a round on `/v1/fuse` (`truth` is known, to be refused with its own reason).
+const ROUND_FIELDS: [&str; 4] = ["id", "context", "reports", "truth"];
+
 /// Splits the body into records, refusing truth (feedback has its own route, so a round cannot
 /// be labelled twice by two paths) and batches over the limit.
 fn parse_fuse_body(
     body: Value,
-    max_batch: usize,
+    limits: &crate::config::Limits,
 ) -> Result<(Vec<RoundRecord>, bool), ServiceError> {
+    let max_batch = limits.max_batch_rounds;
     let Value::Object(obj) = body else {
         return Err(ServiceError::Invalid(
             "the body must be a JSON object: one round, or {\"rounds\": [...]}".into(),
@@ -340,12 +344,38 @@ fn parse_fuse_body(
                 "a round must be a JSON object".into()
             )));
         }
+        // A misspelled key (`requestId`, `truths`) would otherwise be dropped by serde and the
+        // round stored as if it were fine: a retry with the misspelled key would store another.
+        if let Some(k) = v
+            .as_object()
+            .and_then(|o| o.keys().find(|k| !ROUND_FIELDS.contains(&k.as_str())))
+        {
+            let hint = if batch {
+                "a round has id, context, reports (request_id goes at the top level)"
+            } else {
+                "a round has id, context, reports and an optional top-level request_id"
+            };
+            return Err(ServiceError::Invalid(at(format!(
+                "unknown field {k:?}; {hint}"
+            ))));
+        }
         if v.get("truth").is_some_and(|t| !t.is_null()) {
             return Err(ServiceError::TruthNotAccepted(at(
                 "/v1/fuse does not take \"truth\": fuse the round, then send its labels to \
                  POST /v1/feedback with the returned round_id"
                     .into(),
             )));
+        }
+        // Before serde builds the vector: a 4-million-entry context is refused unread.
+        let dim = v
+            .get("context")
+            .and_then(Value::as_array)
+            .map_or(0, Vec::len);
+        if dim > limits.max_context_dim {
+            return Err(ServiceError::Invalid(at(format!(
+                "the context has {dim} dimensions; at most {} (limits.max_context_dim)",
+                limits.max_context_dim
+            ))));
         }
         let rec: RoundRecord =
             serde_json::from_value(v).map_err(|e| ServiceError::Invalid(at(e.to_string())))?;

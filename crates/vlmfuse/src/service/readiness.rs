@@ -79,7 +79,8 @@ pub fn start_probes(
                     continue;
                 };
                 let mut slot = slot.lock().unwrap_or_else(|e| e.into_inner());
-                if slot.ok == Some(true) && res.is_err() {
+                // The first failure is logged too: /readyz shows it without the address.
+                if slot.ok != Some(false) && res.is_err() {
                     tracing::warn!(reporter = %name, error = ?res.as_ref().err(), "reporter probe failed");
                 }
                 if slot.ok == Some(false) && res.is_ok() {
@@ -117,6 +118,19 @@ fn labeler_kind(cfg: &Config) -> (&'static str, &'static str) {
     }
 }
 
+/// Bytes available to this process on the filesystem holding `dir` (statvfs `f_bavail`).
+fn free_bytes(dir: &std::path::Path) -> std::io::Result<u64> {
+    use std::os::unix::ffi::OsStrExt;
+    let path = std::ffi::CString::new(dir.as_os_str().as_bytes())
+        .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidInput, e))?;
+    let mut st: libc::statvfs = unsafe { std::mem::zeroed() };
+    // SAFETY: `path` is a valid NUL-terminated string and `st` a writable statvfs.
+    if unsafe { libc::statvfs(path.as_ptr(), &mut st) } != 0 {
+        return Err(std::io::Error::last_os_error());
+    }
+    Ok(st.f_bavail as u64 * st.f_frsize as u64)
+}
+
 /// The reason a component is not ready, from its `failed` entry ("embedder: why" -> "why").
 fn failure<'a>(p: &'a Pipeline, prefix: &str) -> Option<&'a str> {
     p.failed
@@ -126,13 +140,35 @@ fn failure<'a>(p: &'a Pipeline, prefix: &str) -> Option<&'a str> {
 }
 
 impl Service {
+    /// Why the store cannot be trusted with the next write: the writer broke, or the data
+    /// directory's filesystem is below `server.min_free_bytes` (a full disk would fail the
+    /// next commit; saying so first lets a balancer move writes away).
+    fn store_problem(&self) -> Option<String> {
+        if self.shared.broken.load(Ordering::SeqCst) {
+            return Some(self.shared.broken_reason());
+        }
+        let min = self.cfg.server.min_free_bytes;
+        if min == 0 {
+            return None;
+        }
+        let dir = &self.cfg.server.data_dir;
+        match free_bytes(dir) {
+            Ok(free) if free < min => Some(format!(
+                "disk nearly full: {free} bytes free for {}, below server.min_free_bytes = {min}",
+                dir.display()
+            )),
+            Ok(_) => None,
+            Err(e) => Some(format!("cannot read free space of {}: {e}", dir.display())),
+        }
+    }
+
     /// Components that are configured but not ready, each with its reason: a failed load of the
     /// embedder, a reporter or the labeler, a remote reporter whose last probe failed, a broken
     /// store.
     pub fn not_ready(&self) -> Vec<String> {
         let mut out = Vec::new();
-        if self.shared.broken.load(Ordering::SeqCst) {
-            out.push(format!("store: {}", self.shared.broken_reason()));
+        if let Some(why) = self.store_problem() {
+            out.push(format!("store: {why}"));
         }
         out.extend(self.pipeline.failed.iter().cloned());
         for (name, _) in &self.pipeline.remote {
@@ -175,15 +211,16 @@ impl Service {
     pub fn readiness(&self) -> Readiness {
         let cfg = &self.cfg;
         let p = &self.pipeline;
-        let broken = self.shared.broken.load(Ordering::SeqCst);
+        let store_problem = self.store_problem();
+        let broken = store_problem.is_some();
         let mut components = Map::new();
 
         let mut store = json!({
             "ready": !broken,
             "rounds": self.shared.rounds.load(Ordering::SeqCst),
         });
-        if broken {
-            store["error"] = self.shared.broken_reason().into();
+        if let Some(why) = &store_problem {
+            store["error"] = why.clone().into();
         }
         components.insert("store".into(), store);
 
@@ -267,8 +304,8 @@ impl Service {
         if !ready {
             // The error shape too, so a 503 here reads like every other 503.
             let mut why: Vec<String> = Vec::new();
-            if broken {
-                why.push(format!("store: {}", self.shared.broken_reason()));
+            if let Some(w) = &store_problem {
+                why.push(format!("store: {w}"));
             }
             why.extend(broken_parts);
             body["error"] = format!("not ready: {}", why.join("; ")).into();

@@ -54,6 +54,7 @@ async fn bad_inputs_are_refused_and_change_nothing() {
     cfg.server.api_key = Some(KEY.into());
     cfg.limits.max_body_bytes = 4096;
     cfg.limits.max_batch_rounds = 4;
+    cfg.limits.max_context_dim = 8;
     let srv = TestApp::start(tmp.path(), cfg).await;
     // Some state to protect: two rounds, one labelled.
     let r0 = post_json(&srv, "/v1/fuse", &round(&[1.0, 0.0, 0.5, 0.2])).await;
@@ -166,6 +167,42 @@ async fn bad_inputs_are_refused_and_change_nothing() {
             ).await,
             422,
             "truth_not_accepted",
+        ),
+        (
+            "misspelled field on fuse",
+            post_json(
+                &srv,
+                "/v1/fuse",
+                &json!({"context": [1, 0, 0, 0], "reports": {"vlaad": []}, "requestId": "k1"}),
+            ).await,
+            422,
+            "invalid_request",
+        ),
+        (
+            "unknown field on fuse",
+            post_json(
+                &srv,
+                "/v1/fuse",
+                &json!({"context": [1, 0, 0, 0], "reports": {"vlaad": []}, "truths": ["brake"]}),
+            ).await,
+            422,
+            "invalid_request",
+        ),
+        (
+            "unknown field in a batch round",
+            post_json(
+                &srv,
+                "/v1/fuse",
+                &json!({"rounds": [{"context": [1, 0, 0, 0], "reports": {"vlaad": []}, "idempotency_key": "k"}]}),
+            ).await,
+            422,
+            "invalid_request",
+        ),
+        (
+            "context over max_context_dim",
+            post_json(&srv, "/v1/fuse", &round(&[0.5; 9])).await,
+            422,
+            "invalid_request",
         ),
         (
             "one bad round in a batch",

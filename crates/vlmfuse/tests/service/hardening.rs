@@ -153,6 +153,85 @@ fn a_long_fuse_and_waiting_feedback_do_not_freeze_the_runtime() {
     rt.shutdown_timeout(Duration::from_secs(5));
 }
 
+/// A data directory whose filesystem has less free space than `server.min_free_bytes`:
+/// `/readyz` is 503 with the store's reason, before any commit fails; with the check off the
+/// same directory is ready.
+#[tokio::test(flavor = "multi_thread")]
+async fn readyz_is_503_when_the_data_disk_is_nearly_full() {
+    let tmp = tempfile::tempdir().unwrap();
+    let mut cfg = vlmfuse::config::Config::default();
+    // More than any disk has free: the check must fire.
+    cfg.server.min_free_bytes = u64::MAX;
+    let srv = TestApp::start(tmp.path(), cfg.clone()).await;
+    let r = srv.get("/readyz").await;
+    let v = r.json();
+    assert_eq!(r.status, 503, "{v:#}");
+    assert_eq!(v["components"]["store"]["ready"], false, "{v:#}");
+    let why = v["components"]["store"]["error"].as_str().unwrap();
+    assert!(why.contains("disk nearly full"), "{why}");
+    assert!(
+        v["error"].as_str().unwrap().contains("store: disk"),
+        "{v:#}"
+    );
+    let other = tempfile::tempdir().unwrap();
+    cfg.server.min_free_bytes = 0;
+    let srv = TestApp::start(other.path(), cfg).await;
+    let r = srv.get("/readyz").await;
+    assert_eq!(r.status, 200, "{:#}", r.json());
+}
+
+/// A refused request that came with a body (an upload refused by a middleware before it was
+/// read) is answered with `Connection: close`, so the client does not reuse a connection the
+/// server is about to drop; refusals without a body and successes keep it.
+#[tokio::test(flavor = "multi_thread")]
+async fn refusals_of_a_request_with_a_body_say_connection_close() {
+    let tmp = tempfile::tempdir().unwrap();
+    let mut cfg = vlmfuse::config::Config::default();
+    cfg.server.api_key = Some("k".into());
+    let srv = TestApp::start(tmp.path(), cfg).await;
+    let upload = vec![b'x'; 1000];
+    let len = upload.len().to_string();
+    let cases = [
+        ("POST", "/v1/infer", "multipart/form-data; boundary=x", 401),
+        ("PUT", "/v1/infer", "multipart/form-data; boundary=x", 405),
+        ("POST", "/v1/fuse", "application/json", 401),
+    ];
+    for (method, path, ct, status) in cases {
+        let r = srv
+            .request(
+                method,
+                path,
+                &[("content-type", ct), ("content-length", len.as_str())],
+                upload.clone(),
+            )
+            .await;
+        assert_eq!(r.status, status, "{method} {path}");
+        assert_eq!(r.header("connection"), Some("close"), "{method} {path}");
+    }
+    let r = srv.get("/v2/nothing").await;
+    assert_eq!(r.status, 404);
+    assert_eq!(r.header("connection"), None);
+    let body = serde_json::to_vec(&serde_json::json!({
+        "context": [1.0, 0.0], "reports": {"vlaad": ["brake"]}
+    }))
+    .unwrap();
+    let blen = body.len().to_string();
+    let r = srv
+        .request(
+            "POST",
+            "/v1/fuse",
+            &[
+                ("content-type", "application/json"),
+                ("content-length", blen.as_str()),
+                ("authorization", "Bearer k"),
+            ],
+            body,
+        )
+        .await;
+    assert_eq!(r.status, 200, "{:?}", r.json());
+    assert_eq!(r.header("connection"), None);
+}
+
 async fn until<F: Fn(&Value) -> bool>(srv: &TestApp, within: Duration, f: F) -> (u16, Value) {
     let t = Instant::now();
     loop {
@@ -178,7 +257,7 @@ async fn readyz_follows_reporter_probes_and_names_engines() {
     );
     let interval = 0.3;
     let mut c = format!(
-        "reporters = [\"videollama2\", \"videollava\"]\n\n[server]\nprobe_interval_s = {interval}\n\n"
+        "reporters = [\"videollama2\", \"videollava\"]\n\n[server]\nprobe_interval_s = {interval}\napi_key = \"k\"\n\n"
     );
     c += &clip_embedder_toml(tmp.path());
     c += &fa.reporter_toml("videollama2", "frames");
@@ -221,6 +300,24 @@ async fn readyz_follows_reporter_probes_and_names_engines() {
         .as_str()
         .unwrap();
     assert!(err.contains("/v1/models") && !err.contains('\n'), "{err}");
+    // The open route names no internal address; the token shows it.
+    assert!(
+        !err.contains("127.0.0.1") && err.contains("<address>/v1/models"),
+        "{err}"
+    );
+    let full = srv
+        .request(
+            "GET",
+            "/readyz",
+            &[("authorization", "Bearer k")],
+            Vec::new(),
+        )
+        .await
+        .json();
+    let full_err = full["components"]["reporters"]["videollava"]["error"]
+        .as_str()
+        .unwrap();
+    assert!(full_err.contains("http://127.0.0.1"), "{full_err}");
     assert_eq!(v["components"]["reporters"]["videollama2"]["ready"], true);
 
     // The other one too: nothing can serve /v1/infer, so 503 with one line saying why.
