@@ -88,7 +88,8 @@ pub struct MediaConfig {
     )]
     pub request_timeout_s: f64,
     /// Where uploads are spooled; unset: `spool/` under the data directory. `vlmfuse-clip-*`
-    /// files in it are removed at startup (a killed run leaves its uploads behind).
+    /// files in it are removed at startup (a killed run leaves its uploads behind), except
+    /// those whose name carries the pid of a process that runs (another instance's).
     #[arg(
         long = "media-temp-dir",
         id = "media-temp-dir",

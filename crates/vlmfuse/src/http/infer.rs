@@ -110,7 +110,8 @@ async fn spool(
         .unwrap_or_default();
     let io = |e: std::io::Error| ApiError::Internal(format!("cannot spool the upload: {e}"));
     let mut b = tempfile::Builder::new();
-    b.prefix(crate::service::SPOOL_PREFIX).suffix(&suffix);
+    let prefix = crate::service::spool_prefix();
+    b.prefix(&prefix).suffix(&suffix);
     let file = match dir {
         Some(d) => b.tempfile_in(d),
         None => b.tempfile(),

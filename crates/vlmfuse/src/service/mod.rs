@@ -122,18 +122,44 @@ pub struct Service {
 /// The prefix of every spooled upload; only such files are ever removed from the spool.
 pub const SPOOL_PREFIX: &str = "vlmfuse-clip-";
 
+/// This process's prefix for spooled uploads: `vlmfuse-clip-<pid>-`. The pid tells the start-up
+/// cleaning of another instance that shares `media.temp_dir` whether the upload's owner still
+/// runs, so it never deletes an upload in flight.
+pub fn spool_prefix() -> String {
+    format!("{SPOOL_PREFIX}{}-", std::process::id())
+}
+
+/// Whether process `pid` exists (signal 0 probes without sending anything; EPERM means it
+/// exists under another user).
+fn process_alive(pid: i32) -> bool {
+    // SAFETY: kill with signal 0 has no effect besides the permission/existence check.
+    let r = unsafe { libc::kill(pid, 0) };
+    r == 0 || std::io::Error::last_os_error().raw_os_error() == Some(libc::EPERM)
+}
+
 /// Creates the spool directory and removes the uploads a killed run left in it (a clean
-/// shutdown leaves none: each upload is deleted when its request ends). Returns how many.
+/// shutdown leaves none: each upload is deleted when its request ends). An upload whose name
+/// carries the pid of a process that still runs belongs to another instance sharing the
+/// directory and is left alone; names without a pid (written by older versions) are stale.
+/// Returns how many were removed.
 fn clear_spool(dir: &std::path::Path) -> std::io::Result<usize> {
     std::fs::create_dir_all(dir)?;
+    let me = std::process::id() as i32;
     let mut removed = 0;
     for entry in std::fs::read_dir(dir)? {
         let entry = entry?;
-        let ours = entry
-            .file_name()
-            .to_string_lossy()
-            .starts_with(SPOOL_PREFIX);
-        if ours && entry.file_type()?.is_file() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Some(rest) = name.strip_prefix(SPOOL_PREFIX) else {
+            continue;
+        };
+        let owner = rest
+            .split_once('-')
+            .and_then(|(pid, _)| pid.parse::<i32>().ok())
+            .filter(|&p| p > 0);
+        if owner.is_some_and(|p| p != me && process_alive(p)) {
+            continue;
+        }
+        if entry.file_type()?.is_file() {
             std::fs::remove_file(entry.path())?;
             removed += 1;
         }

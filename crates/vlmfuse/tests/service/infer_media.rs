@@ -249,7 +249,25 @@ async fn uploads_left_by_a_killed_run_are_removed_at_startup() {
     std::fs::create_dir_all(&spool).unwrap();
     std::fs::write(spool.join("vlmfuse-clip-abc123.mp4"), b"half an upload").unwrap();
     std::fs::write(spool.join("notes.txt"), b"not ours").unwrap();
+    // Another instance sharing the spool (a process that runs) and one that was killed.
+    let mut alive = std::process::Command::new("sleep")
+        .arg("30")
+        .spawn()
+        .unwrap();
+    let mut dead = std::process::Command::new("true").spawn().unwrap();
+    dead.wait().unwrap();
+    let theirs = format!("vlmfuse-clip-{}-inflight.mp4", alive.id());
+    let killed = format!("vlmfuse-clip-{}-left.mp4", dead.id());
+    std::fs::write(spool.join(&theirs), b"an upload in flight").unwrap();
+    std::fs::write(spool.join(&killed), b"half an upload").unwrap();
     let _srv = TestApp::from_toml(tmp.path(), "reporters = [\"a\"]\n").await;
     assert!(!spool.join("vlmfuse-clip-abc123.mp4").exists());
     assert!(spool.join("notes.txt").exists());
+    assert!(!spool.join(&killed).exists(), "a dead owner's upload stays");
+    assert!(
+        spool.join(&theirs).exists(),
+        "another running instance's upload was deleted"
+    );
+    alive.kill().unwrap();
+    alive.wait().unwrap();
 }
