@@ -279,7 +279,7 @@ fn input_ids_logits_and_greedy_ids_match_reference() {
         report.push(format!("{name}: max |Δlogit| {d:.2e} (range {range:.1})"));
         assert!(d <= TOL, "{name}: first-token logits differ by {d}");
 
-        let ids = greedy(&m, &inputs, 16, &[], &mut cache).unwrap();
+        let ids = greedy(m, &inputs, 16, &[], &mut cache).unwrap();
         assert_eq!(ids, ints(&case["greedy"]), "{name}: greedy ids");
     }
     eprintln!("{}", report.join("\n"));

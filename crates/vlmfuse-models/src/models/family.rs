@@ -198,10 +198,13 @@ where
     }
 }
 
+/// How a registered family loads: weights and options in, the family behind [`AnyFamily`].
+pub type LoadFn = fn(&WeightSource, &FamilyOptions) -> Result<Box<dyn AnyFamily>, ModelError>;
+
 /// One line of [`FAMILIES`]: a `model_type` and how to load it.
 pub struct Registration {
     pub model_type: &'static str,
-    pub load: fn(&WeightSource, &FamilyOptions) -> Result<Box<dyn AnyFamily>, ModelError>,
+    pub load: LoadFn,
 }
 
 impl Registration {

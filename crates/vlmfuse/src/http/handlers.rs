@@ -192,30 +192,6 @@ fn redact_str(s: &str) -> String {
     out
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn addresses_are_redacted_paths_kept() {
-        assert_eq!(
-            redact_str("GET http://10.0.0.7:8000/v1/models: connection refused"),
-            "GET <address>/v1/models: connection refused"
-        );
-        assert_eq!(
-            redact_str("`https://user:pw@vllm.internal` and http://[::1]:9/x"),
-            "`<address>` and <address>/x"
-        );
-        assert_eq!(redact_str("no url :// here"), "no url :// here");
-        let mut v = serde_json::json!({"a": ["x http://h:1/p"], "b": {"c": "ftp://q"}, "d": 3});
-        redact_addresses(&mut v);
-        assert_eq!(
-            v,
-            serde_json::json!({"a": ["x <address>/p"], "b": {"c": "<address>"}, "d": 3})
-        );
-    }
-}
-
 /// `GET /metrics`: Prometheus text.
 pub async fn metrics(State(st): State<AppState>) -> Response {
     let mut h = HeaderMap::new();
@@ -246,4 +222,28 @@ pub async fn not_found(req: Request) -> ApiError {
 
 pub async fn method_not_allowed() -> ApiError {
     ApiError::MethodNotAllowed
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn addresses_are_redacted_paths_kept() {
+        assert_eq!(
+            redact_str("GET http://10.0.0.7:8000/v1/models: connection refused"),
+            "GET <address>/v1/models: connection refused"
+        );
+        assert_eq!(
+            redact_str("`https://user:pw@vllm.internal` and http://[::1]:9/x"),
+            "`<address>` and <address>/x"
+        );
+        assert_eq!(redact_str("no url :// here"), "no url :// here");
+        let mut v = serde_json::json!({"a": ["x http://h:1/p"], "b": {"c": "ftp://q"}, "d": 3});
+        redact_addresses(&mut v);
+        assert_eq!(
+            v,
+            serde_json::json!({"a": ["x <address>/p"], "b": {"c": "<address>"}, "d": 3})
+        );
+    }
 }

@@ -37,15 +37,27 @@ async fn infer_inner(State(st): State<AppState>, req: Request) -> Result<Respons
     // Refuse before reading a byte of the upload when a component is missing.
     st.service.check_infer_ready()?;
     let header_key = super::handlers::idempotency_header(req.headers())?;
-    let req = refuse_long_preamble(req).await?;
+    let (req, refused) = refuse_long_preamble(req).await?;
+    // A refusal by the guard surfaces in the parser as a body error; answer the guard's.
+    let guard_err = |e: ApiError| {
+        refused
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .take()
+            .unwrap_or(e)
+    };
     let mut multipart = Multipart::from_request(req, &st).await?;
     let media = &st.service.config().media;
     let spool_dir = st.service.config().spool_dir();
     let mut uploads = Vec::new();
     let mut request_id: Option<String> = None;
-    while let Some(field) = multipart.next_field().await? {
+    while let Some(field) = multipart
+        .next_field()
+        .await
+        .map_err(|e| guard_err(e.into()))?
+    {
         if field.name() == Some("request_id") {
-            request_id = Some(read_request_id(field).await?);
+            request_id = Some(read_request_id(field).await.map_err(guard_err)?);
             continue;
         }
         if field.name() != Some("video") {
@@ -59,7 +71,11 @@ async fn infer_inner(State(st): State<AppState>, req: Request) -> Result<Respons
         if uploads.len() == media.max_clips {
             return Err(ServiceError::TooManyClips(media.max_clips).into());
         }
-        uploads.push(spool(field, Some(&spool_dir), media.max_bytes).await?);
+        uploads.push(
+            spool(field, Some(&spool_dir), media.max_bytes)
+                .await
+                .map_err(guard_err)?,
+        );
     }
     if uploads.is_empty() {
         return Err(ServiceError::Invalid(
@@ -146,56 +162,187 @@ async fn spool(
 /// A constant, not a config field: no legitimate upload comes near it.
 pub const MAX_MULTIPART_PREAMBLE: usize = 8 * 1024;
 
-/// The `boundary` parameter of a `multipart/*` content type (quoted or not).
+/// Most bytes of one part's header block (`Content-Disposition`, `Content-Type`, ...). The
+/// parser buffers a header block until its blank line and rescans it on every read, so an
+/// endless header cost CPU and memory without bound; real clients send well under 1 KiB.
+pub const MAX_PART_HEADER: usize = 8 * 1024;
+
+/// The boundary exactly as the multipart parser reads it (multer's own parser: a quoted
+/// `boundary="x;y"` is one parameter, which splitting the header at `;` got wrong).
 fn boundary_of(req: &Request) -> Option<String> {
     let ct = req.headers().get(header::CONTENT_TYPE)?.to_str().ok()?;
-    let (mime, params) = ct.split_once(';')?;
-    if !mime.trim().to_ascii_lowercase().starts_with("multipart/") {
-        return None;
-    }
-    params.split(';').find_map(|p| {
-        let (k, v) = p.split_once('=')?;
-        k.trim()
-            .eq_ignore_ascii_case("boundary")
-            .then(|| v.trim().trim_matches('"').to_string())
-            .filter(|b| !b.is_empty())
-    })
+    multer::parse_boundary(ct).ok().filter(|b| !b.is_empty())
 }
 
-/// Reads the body up to its first boundary and refuses it (400 `multipart_preamble_too_long`)
-/// once more than [`MAX_MULTIPART_PREAMBLE`] bytes came without one; the bytes read are put back
-/// in front of the rest of the stream for the multipart parser. Without a parsable boundary the
-/// request passes unchanged and the parser's own rejection names the problem.
-async fn refuse_long_preamble(req: Request) -> Result<Request, ApiError> {
+/// Where [`MultipartGuard`] is in the body.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Phase {
+    /// Before the first delimiter; `seen` bytes so far.
+    Preamble { seen: usize },
+    /// Just after a delimiter: `--` closes the body, anything else starts a header block.
+    AfterDelimiter,
+    /// In a part's header block, `len` bytes so far, looking for its blank line.
+    Header { len: usize },
+    /// In a part's data, looking for the next `CRLF--boundary`.
+    Data,
+    /// After the close delimiter.
+    Epilogue,
+}
+
+/// Watches a multipart body as it streams past (nothing is buffered but a few bytes carried
+/// across chunk edges, so the scan is linear) and refuses it at the first preamble or part
+/// header longer than its limit, before the parser has buffered either.
+struct MultipartGuard {
+    boundary: String,
+    /// `--boundary` (the first one may open the body without a line break).
+    first: Vec<u8>,
+    /// `\r\n--boundary`.
+    next: Vec<u8>,
+    phase: Phase,
+    /// The last bytes of the previous chunk, so a delimiter split across chunks is found.
+    carry: Vec<u8>,
+}
+
+impl MultipartGuard {
+    fn new(boundary: String) -> Self {
+        let first = format!("--{boundary}").into_bytes();
+        let next = [b"\r\n".as_slice(), &first].concat();
+        Self {
+            boundary,
+            first,
+            next,
+            phase: Phase::Preamble { seen: 0 },
+            carry: Vec::new(),
+        }
+    }
+
+    fn refuse(&self, kind: &'static str, message: String) -> ApiError {
+        ApiError::Body {
+            status: StatusCode::BAD_REQUEST,
+            kind,
+            message,
+        }
+    }
+
+    /// Scans one chunk; an error refuses the body.
+    fn feed(&mut self, chunk: &[u8]) -> Result<(), ApiError> {
+        use memchr::memmem;
+        let mut buf = std::mem::take(&mut self.carry);
+        buf.extend_from_slice(chunk);
+        let mut i = 0;
+        loop {
+            match self.phase {
+                Phase::Epilogue => return Ok(()),
+                Phase::Preamble { .. } | Phase::Data => {
+                    let (pre, seen) = match self.phase {
+                        Phase::Preamble { seen } => (true, seen),
+                        _ => (false, 0),
+                    };
+                    let pat: &[u8] = if pre { &self.first } else { &self.next };
+                    match memmem::find(&buf[i..], pat) {
+                        Some(j) => {
+                            if pre && seen + j > MAX_MULTIPART_PREAMBLE {
+                                return Err(self.preamble_error());
+                            }
+                            i += j + pat.len();
+                            self.phase = Phase::AfterDelimiter;
+                        }
+                        None => {
+                            let keep = (pat.len() - 1).min(buf.len() - i);
+                            let done = buf.len() - i - keep;
+                            if pre {
+                                let seen = seen + done;
+                                if seen > MAX_MULTIPART_PREAMBLE {
+                                    return Err(self.preamble_error());
+                                }
+                                self.phase = Phase::Preamble { seen };
+                            }
+                            self.carry = buf[buf.len() - keep..].to_vec();
+                            return Ok(());
+                        }
+                    }
+                }
+                Phase::AfterDelimiter => {
+                    if buf.len() - i < 2 {
+                        self.carry = buf[i..].to_vec();
+                        return Ok(());
+                    }
+                    self.phase = if &buf[i..i + 2] == b"--" {
+                        Phase::Epilogue
+                    } else {
+                        Phase::Header { len: 0 }
+                    };
+                }
+                Phase::Header { len } => match memmem::find(&buf[i..], b"\r\n\r\n") {
+                    Some(j) => {
+                        if len + j > MAX_PART_HEADER {
+                            return Err(self.header_error());
+                        }
+                        i += j + 4;
+                        self.phase = Phase::Data;
+                    }
+                    None => {
+                        let keep = 3.min(buf.len() - i);
+                        let len = len + buf.len() - i - keep;
+                        if len > MAX_PART_HEADER {
+                            return Err(self.header_error());
+                        }
+                        self.phase = Phase::Header { len };
+                        self.carry = buf[buf.len() - keep..].to_vec();
+                        return Ok(());
+                    }
+                },
+            }
+        }
+    }
+
+    fn preamble_error(&self) -> ApiError {
+        self.refuse(
+            "multipart_preamble_too_long",
+            format!(
+                "more than {MAX_MULTIPART_PREAMBLE} bytes before the first multipart boundary \
+                 \"--{}\": a multipart/form-data body starts with its boundary",
+                self.boundary
+            ),
+        )
+    }
+
+    fn header_error(&self) -> ApiError {
+        self.refuse(
+            "multipart_header_too_long",
+            format!(
+                "a part's headers run past {MAX_PART_HEADER} bytes without the blank line that \
+                 ends them"
+            ),
+        )
+    }
+}
+
+/// Puts a [`MultipartGuard`] in front of the multipart parser. The guard's first refusal (a
+/// preamble over [`MAX_MULTIPART_PREAMBLE`], a part header over [`MAX_PART_HEADER`]) is
+/// answered as it is, before the parser sees the bytes: the preamble is checked here, before
+/// the parser starts, and a later header refusal ends the stream with an error that
+/// [`infer_inner`] turns back into the guard's answer. Without a parsable boundary the request
+/// passes unchanged and the parser's own rejection names the problem.
+async fn refuse_long_preamble(
+    req: Request,
+) -> Result<(Request, std::sync::Arc<std::sync::Mutex<Option<ApiError>>>), ApiError> {
+    let refused = std::sync::Arc::new(std::sync::Mutex::new(None::<ApiError>));
     let Some(boundary) = boundary_of(&req) else {
-        return Ok(req);
+        return Ok((req, refused));
     };
-    let delimiter = format!("--{boundary}").into_bytes();
-    // The delimiter must start within the allowed preamble.
-    let window = MAX_MULTIPART_PREAMBLE + delimiter.len();
+    let mut guard = MultipartGuard::new(boundary);
     let (parts, body) = req.into_parts();
     let mut stream = body.into_data_stream();
+    // The preamble: read until the first delimiter (or the end), so that refusal needs no
+    // parser at all.
     let mut head: Vec<u8> = Vec::new();
-    loop {
-        let searched = head.len().min(window);
-        if head[..searched]
-            .windows(delimiter.len())
-            .any(|w| w == delimiter.as_slice())
-        {
-            break;
-        }
-        if head.len() >= window {
-            return Err(ApiError::Body {
-                status: StatusCode::BAD_REQUEST,
-                kind: "multipart_preamble_too_long",
-                message: format!(
-                    "more than {MAX_MULTIPART_PREAMBLE} bytes before the first multipart boundary \
-                     \"--{boundary}\": a multipart/form-data body starts with its boundary"
-                ),
-            });
-        }
+    while matches!(guard.phase, Phase::Preamble { .. }) {
         match stream.next().await {
-            Some(Ok(chunk)) => head.extend_from_slice(&chunk),
+            Some(Ok(chunk)) => {
+                guard.feed(&chunk)?;
+                head.extend_from_slice(&chunk);
+            }
             Some(Err(e)) => {
                 return Err(ApiError::Body {
                     status: StatusCode::BAD_REQUEST,
@@ -207,7 +354,64 @@ async fn refuse_long_preamble(req: Request) -> Result<Request, ApiError> {
             None => break,
         }
     }
-    let rest =
-        futures::stream::once(async move { Ok::<_, axum::Error>(Bytes::from(head)) }).chain(stream);
-    Ok(Request::from_parts(parts, Body::from_stream(rest)))
+    let slot = refused.clone();
+    let guarded = stream.map(move |item| {
+        let chunk = item?;
+        if let Err(e) = guard.feed(&chunk) {
+            let msg = e.to_string();
+            *slot.lock().unwrap_or_else(|p| p.into_inner()) = Some(e);
+            return Err(axum::Error::new(std::io::Error::other(msg)));
+        }
+        Ok(chunk)
+    });
+    let rest = futures::stream::once(async move { Ok::<_, axum::Error>(Bytes::from(head)) })
+        .chain(guarded);
+    Ok((Request::from_parts(parts, Body::from_stream(rest)), refused))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn body(boundary: &str, parts: usize, header_pad: usize) -> Vec<u8> {
+        let mut b = b"a short preamble\r\n".to_vec();
+        for i in 0..parts {
+            b.extend(
+                format!(
+                    "--{boundary}\r\nContent-Disposition: form-data; name=\"video\"; \
+                     filename=\"{i}.mp4\"\r\nX-Pad: {}\r\n\r\n",
+                    "p".repeat(header_pad)
+                )
+                .into_bytes(),
+            );
+            // Data that holds the boundary without its line break, and line breaks.
+            b.extend(format!("data --{boundary} \r\n-- {i}\r\n").into_bytes());
+            b.extend(std::iter::repeat_n(b'z', 3000));
+            b.extend(b"\r\n");
+        }
+        b.extend(format!("--{boundary}--\r\nepilogue").into_bytes());
+        b
+    }
+
+    /// Every way of cutting a good body into chunks passes, and ends after the close
+    /// delimiter; the same body with an oversized header is refused however it is cut.
+    #[test]
+    fn the_guard_is_indifferent_to_chunk_edges() {
+        let good = body("b0und", 3, 100);
+        let bad = body("b0und", 2, MAX_PART_HEADER + 10);
+        for size in [1, 2, 3, 5, 7, 64, 1000, 1 << 20] {
+            let mut g = MultipartGuard::new("b0und".into());
+            for c in good.chunks(size) {
+                g.feed(c)
+                    .unwrap_or_else(|e| panic!("chunks of {size}: {e}"));
+            }
+            assert_eq!(g.phase, Phase::Epilogue, "chunks of {size}");
+            let mut g = MultipartGuard::new("b0und".into());
+            let refused = bad.chunks(size).any(|c| g.feed(c).is_err());
+            assert!(refused, "chunks of {size}: an oversized header passed");
+        }
+        let mut g = MultipartGuard::new("b0und".into());
+        let junk = vec![b'x'; MAX_MULTIPART_PREAMBLE + 64];
+        assert!(g.feed(&junk).is_err());
+    }
 }

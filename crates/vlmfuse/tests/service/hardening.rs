@@ -77,6 +77,96 @@ async fn a_huge_multipart_preamble_is_refused_at_once() {
     );
 }
 
+/// Streams `parts` to `/v1/infer` with `content_type`; the status, the body and the time taken.
+async fn post_stream(
+    srv: &TestApp,
+    content_type: &str,
+    parts: Vec<Vec<u8>>,
+) -> (u16, Value, Duration) {
+    let parts: Vec<Result<Vec<u8>, std::io::Error>> = parts.into_iter().map(Ok).collect();
+    let req = Request::builder()
+        .method("POST")
+        .uri("/v1/infer")
+        .header("content-type", content_type)
+        .body(Body::from_stream(futures::stream::iter(parts)))
+        .unwrap();
+    let t = Instant::now();
+    let resp = srv.router().oneshot(req).await.unwrap();
+    let status = resp.status().as_u16();
+    let bytes = axum::body::to_bytes(resp.into_body(), usize::MAX)
+        .await
+        .unwrap();
+    let took = t.elapsed();
+    (
+        status,
+        serde_json::from_slice(&bytes).unwrap_or(Value::Null),
+        took,
+    )
+}
+
+/// The two ways round the preamble cap (issue 21 row 2): a quoted boundary holding `;`, which
+/// a split at `;` cut short so the cap looked for the wrong delimiter, and a part header that
+/// never ends, which the parser buffered and rescanned without limit. Both refused within a few
+/// KiB, in well under a second; a quoted boundary that is honest still works.
+#[tokio::test(flavor = "multi_thread")]
+async fn quoted_boundaries_and_endless_part_headers_are_refused_at_once() {
+    let tmp = tempfile::tempdir().unwrap();
+    let fake = FakeOpenAi::start();
+    let srv = TestApp::from_toml(tmp.path(), &infer_config(tmp.path(), &fake)).await;
+    let clip = vlmfuse_testkit::clips::h264_clip(tmp.path(), "a.mp4", "testsrc", 1.0);
+    let data = std::fs::read(&clip).unwrap();
+    let chunk = vec![b'x'; 64 * 1024];
+
+    // boundary="x;y": 16 MiB of junk, then a body with that boundary.
+    let quoted = "multipart/form-data; boundary=\"x;y\"";
+    let part = |b: &str| {
+        let mut v = format!(
+            "--{b}\r\nContent-Disposition: form-data; name=\"video\"; filename=\"a.mp4\"\r\n\
+             Content-Type: video/mp4\r\n\r\n"
+        )
+        .into_bytes();
+        v.extend_from_slice(&data);
+        v.extend(format!("\r\n--{b}--\r\n").into_bytes());
+        v
+    };
+    let mut parts: Vec<Vec<u8>> = (0..256).map(|_| chunk.clone()).collect();
+    parts.push(part("x;y"));
+    let (status, v, took) = post_stream(&srv, quoted, parts).await;
+    assert_eq!(status, 400, "{v}");
+    assert_eq!(v["kind"], "multipart_preamble_too_long", "{v}");
+    assert!(took < Duration::from_millis(500), "took {took:?}");
+    // The same boundary without junk is a good upload.
+    let (status, v, _) = post_stream(&srv, quoted, vec![part("x;y")]).await;
+    assert_eq!(status, 200, "{v}");
+
+    // A part header that never ends: 16 MiB of one header line.
+    let mut parts = vec![format!(
+        "--{BOUNDARY}\r\nContent-Disposition: form-data; name=\"video\"; filename=\"a.mp4\"\r\nX-Pad: "
+    )
+    .into_bytes()];
+    parts.extend((0..256).map(|_| chunk.clone()));
+    let (status, v, took) = post_stream(&srv, &content_type(), parts).await;
+    assert_eq!(status, 400, "{v}");
+    assert_eq!(v["kind"], "multipart_header_too_long", "{v}");
+    assert!(took < Duration::from_millis(500), "took {took:?}");
+    // The same after a first, good part.
+    let mut first = multipart(&[("video", "a.mp4", &data)]);
+    // Drop the close delimiter ("--\r\n") so another part follows.
+    first.truncate(first.len() - 4);
+    first.extend(b"\r\nContent-Disposition: form-data; name=\"video\"\r\nX-Pad: ");
+    let mut parts = vec![first];
+    parts.extend((0..256).map(|_| chunk.clone()));
+    let (status, v, took) = post_stream(&srv, &content_type(), parts).await;
+    assert_eq!(status, 400, "{v}");
+    assert_eq!(v["kind"], "multipart_header_too_long", "{v}");
+    assert!(took < Duration::from_millis(500), "took {took:?}");
+    assert_eq!(
+        srv.state().await["rounds"],
+        1,
+        "only the good upload was stored"
+    );
+}
+
 /// A long batch `/v1/fuse` holds the engine's read side while a feedback waits for the write
 /// side; feedback and state requests arriving meanwhile must wait without taking a runtime
 /// thread, so `/healthz` still answers on a 2-worker runtime. (With a blocking lock the two
