@@ -11,6 +11,11 @@
 //! - idle (nothing received since the last answer, or since accept): closed after
 //!   `idle_timeout`.
 //!
+//! Writes have a deadline too: an answer that makes no progress for `idle_timeout` (a client
+//! that pipelines requests and never reads the answers fills the socket's send buffer) ends
+//! the connection, so such clients cannot hold every connection slot. Shutdown waits at most
+//! `shutdown_timeout` for the connections to finish.
+//!
 //! The cap is a semaphore taken before `accept`: past it, new connections wait in the kernel's
 //! backlog, unserved, until one closes.
 
@@ -34,6 +39,8 @@ pub struct ConnLimits {
     pub header_read_timeout: Duration,
     pub idle_timeout: Duration,
     pub max_connections: usize,
+    /// How long a shutdown waits for open connections before it returns anyway.
+    pub shutdown_timeout: Duration,
 }
 
 /// What the router side tells the socket side of one connection.
@@ -106,6 +113,9 @@ struct Guarded {
     /// requests had been dispatched then.
     head: Option<(Instant, u64)>,
     timer: Pin<Box<Sleep>>,
+    /// Since when writes have made no progress (`None` while they do).
+    stalled_since: Option<Instant>,
+    write_timer: Pin<Box<Sleep>>,
 }
 
 impl Guarded {
@@ -116,6 +126,41 @@ impl Guarded {
             limits,
             head: None,
             timer: Box::pin(tokio::time::sleep(Duration::ZERO)),
+            stalled_since: None,
+            write_timer: Box::pin(tokio::time::sleep(Duration::ZERO)),
+        }
+    }
+
+    /// A write that returned `Pending`: pending still, or an error once writes have made no
+    /// progress for `idle_timeout` (the client stopped reading).
+    fn write_stalled<T>(&mut self, cx: &mut Context<'_>) -> Poll<io::Result<T>> {
+        let since = *self.stalled_since.get_or_insert_with(Instant::now);
+        let deadline = since + self.limits.idle_timeout;
+        let stalled = || {
+            Poll::Ready(Err(io::Error::new(
+                io::ErrorKind::TimedOut,
+                "the client read nothing of the answer within server.idle_timeout_s",
+            )))
+        };
+        if Instant::now() >= deadline {
+            return stalled();
+        }
+        if self.write_timer.deadline() != deadline {
+            self.write_timer.as_mut().reset(deadline);
+        }
+        match self.write_timer.as_mut().poll(cx) {
+            Poll::Ready(()) => stalled(),
+            Poll::Pending => Poll::Pending,
+        }
+    }
+
+    fn wrote<T>(&mut self, r: Poll<io::Result<T>>, cx: &mut Context<'_>) -> Poll<io::Result<T>> {
+        match r {
+            Poll::Pending => self.write_stalled(cx),
+            done => {
+                self.stalled_since = None;
+                done
+            }
         }
     }
 
@@ -189,11 +234,13 @@ impl AsyncWrite for Guarded {
         cx: &mut Context<'_>,
         buf: &[u8],
     ) -> Poll<io::Result<usize>> {
-        Pin::new(&mut self.io).poll_write(cx, buf)
+        let r = Pin::new(&mut self.io).poll_write(cx, buf);
+        self.wrote(r, cx)
     }
 
     fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
-        Pin::new(&mut self.io).poll_flush(cx)
+        let r = Pin::new(&mut self.io).poll_flush(cx);
+        self.wrote(r, cx)
     }
 
     fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
@@ -205,7 +252,8 @@ impl AsyncWrite for Guarded {
         cx: &mut Context<'_>,
         bufs: &[io::IoSlice<'_>],
     ) -> Poll<io::Result<usize>> {
-        Pin::new(&mut self.io).poll_write_vectored(cx, bufs)
+        let r = Pin::new(&mut self.io).poll_write_vectored(cx, bufs);
+        self.wrote(r, cx)
     }
 
     fn is_write_vectored(&self) -> bool {
@@ -214,7 +262,8 @@ impl AsyncWrite for Guarded {
 }
 
 /// Serves `app` on `listener` until `shutdown` completes, then stops accepting, lets every
-/// open connection finish its request in flight (idle ones close at once) and returns.
+/// open connection finish its request in flight (idle ones close at once) and returns, after
+/// `limits.shutdown_timeout` at the latest (the connections left are dropped with the runtime).
 pub async fn serve(
     listener: TcpListener,
     app: Router,
@@ -280,6 +329,99 @@ pub async fn serve(
     let _ = stop_tx.send(true);
     // Every connection holds a permit until it ends.
     let all = u32::try_from(limits.max_connections).unwrap_or(u32::MAX);
-    let _ = permits.acquire_many(all).await;
+    if tokio::time::timeout(limits.shutdown_timeout, permits.acquire_many(all))
+        .await
+        .is_err()
+    {
+        let open = limits.max_connections - permits.available_permits();
+        tracing::warn!(
+            open,
+            "shutdown: connections still open after server.shutdown_timeout_s; leaving them"
+        );
+    }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+    fn limits(max_connections: usize) -> ConnLimits {
+        ConnLimits {
+            header_read_timeout: Duration::from_secs(5),
+            idle_timeout: Duration::from_millis(500),
+            max_connections,
+            shutdown_timeout: Duration::from_millis(700),
+        }
+    }
+
+    /// 4 MiB per answer: a client that never reads fills the socket buffers at once.
+    fn app() -> Router {
+        Router::new().route("/big", axum::routing::get(|| async { vec![b'z'; 4 << 20] }))
+    }
+
+    /// Connects and pipelines requests it never reads the answers of.
+    async fn stalled_client(addr: std::net::SocketAddr) -> TcpStream {
+        let mut c = TcpStream::connect(addr).await.unwrap();
+        let reqs = "GET /big HTTP/1.1\r\nhost: x\r\n\r\n".repeat(50);
+        c.write_all(reqs.as_bytes()).await.unwrap();
+        c
+    }
+
+    async fn get_big(addr: std::net::SocketAddr) -> usize {
+        let mut c = TcpStream::connect(addr).await.unwrap();
+        c.write_all(b"GET /big HTTP/1.1\r\nhost: x\r\nconnection: close\r\n\r\n")
+            .await
+            .unwrap();
+        let mut buf = Vec::new();
+        c.read_to_end(&mut buf).await.unwrap();
+        buf.len()
+    }
+
+    /// With one connection slot, a client that pipelines and never reads holds it only until
+    /// its writes have stalled for `idle_timeout`; then the next client is served.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_client_that_never_reads_loses_its_slot() {
+        let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+        let server = tokio::spawn(serve(listener, app(), limits(1), async {
+            let _ = rx.await;
+        }));
+        let _stalled = stalled_client(addr).await;
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        let t = std::time::Instant::now();
+        let got = tokio::time::timeout(Duration::from_secs(5), get_big(addr))
+            .await
+            .expect("the second client was never served");
+        assert!(got > 4 << 20, "{got} bytes");
+        assert!(t.elapsed() < Duration::from_secs(3), "{:?}", t.elapsed());
+        tx.send(()).unwrap();
+        server.await.unwrap().unwrap();
+    }
+
+    /// Shutdown returns within its deadline even while a connection is stuck mid-answer.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn shutdown_has_a_deadline() {
+        let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+        let mut l = limits(4);
+        // Longer than the test waits: only the shutdown deadline can end it in time.
+        l.idle_timeout = Duration::from_secs(60);
+        let server = tokio::spawn(serve(listener, app(), l, async {
+            let _ = rx.await;
+        }));
+        let _stalled = stalled_client(addr).await;
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        let t = std::time::Instant::now();
+        tx.send(()).unwrap();
+        tokio::time::timeout(Duration::from_secs(5), server)
+            .await
+            .expect("shutdown waited past its deadline")
+            .unwrap()
+            .unwrap();
+        assert!(t.elapsed() < Duration::from_secs(3), "{:?}", t.elapsed());
+    }
 }

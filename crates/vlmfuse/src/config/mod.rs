@@ -211,6 +211,7 @@ impl Config {
             self.server.header_read_timeout_s,
         )?;
         seconds("server.idle_timeout_s", self.server.idle_timeout_s)?;
+        seconds("server.shutdown_timeout_s", self.server.shutdown_timeout_s)?;
         ensure!(
             self.server.max_connections > 0
                 && self.server.max_connections <= tokio::sync::Semaphore::MAX_PERMITS.min(1 << 24),
@@ -275,6 +276,7 @@ impl Config {
             header_read_timeout: std::time::Duration::from_secs_f64(s.header_read_timeout_s),
             idle_timeout: std::time::Duration::from_secs_f64(s.idle_timeout_s),
             max_connections: s.max_connections,
+            shutdown_timeout: std::time::Duration::from_secs_f64(s.shutdown_timeout_s),
         }
     }
 

@@ -45,6 +45,11 @@ pub struct ServerConfig {
     /// before SQLite fails them. 0 disables the check.
     #[arg(long, env = "VLMFUSE_MIN_FREE_BYTES", required = false)]
     pub min_free_bytes: u64,
+    /// Seconds a shutdown (SIGTERM, Ctrl-C) waits for open connections to finish their
+    /// requests before the process exits anyway; rounds already acknowledged are committed
+    /// either way (the writer drains its queue after the connections are gone).
+    #[arg(long, env = "VLMFUSE_SHUTDOWN_TIMEOUT_S", required = false)]
+    pub shutdown_timeout_s: f64,
 }
 
 impl Default for ServerConfig {
@@ -58,6 +63,7 @@ impl Default for ServerConfig {
             idle_timeout_s: 60.0,
             max_connections: 1024,
             min_free_bytes: 64 * 1024 * 1024,
+            shutdown_timeout_s: 10.0,
         }
     }
 }
