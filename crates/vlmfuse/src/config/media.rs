@@ -87,6 +87,26 @@ pub struct MediaConfig {
         required = false
     )]
     pub request_timeout_s: f64,
+    /// Slowest upload /v1/infer waits for, in bytes per second averaged from the first byte
+    /// (after `upload_grace_s`); a slower or stalled one is refused with 408 `upload_too_slow`,
+    /// so trickling clients cannot hold the concurrency slots until the request timeout.
+    /// 0 disables the check.
+    #[arg(
+        long = "media-min-upload-bytes-per-s",
+        id = "media-min-upload-bytes-per-s",
+        env = "VLMFUSE_MEDIA_MIN_UPLOAD_BYTES_PER_S",
+        required = false
+    )]
+    pub min_upload_bytes_per_s: u64,
+    /// Seconds of an upload before `min_upload_bytes_per_s` applies (connection start-up,
+    /// a slow first packet).
+    #[arg(
+        long = "media-upload-grace-s",
+        id = "media-upload-grace-s",
+        env = "VLMFUSE_MEDIA_UPLOAD_GRACE_S",
+        required = false
+    )]
+    pub upload_grace_s: f64,
     /// Where uploads are spooled; unset: `spool/` under the data directory. `vlmfuse-clip-*`
     /// files in it are removed at startup (a killed run leaves its uploads behind), except
     /// those whose name carries the pid of a process that runs (another instance's).
@@ -114,6 +134,8 @@ impl Default for MediaConfig {
             max_frames_decoded: l.max_frames_decoded,
             decode_threads: l.decode_threads,
             request_timeout_s: 300.0,
+            min_upload_bytes_per_s: 16 * 1024,
+            upload_grace_s: 10.0,
             temp_dir: None,
         }
     }

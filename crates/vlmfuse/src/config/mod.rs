@@ -212,6 +212,7 @@ impl Config {
         )?;
         seconds("server.idle_timeout_s", self.server.idle_timeout_s)?;
         seconds("server.shutdown_timeout_s", self.server.shutdown_timeout_s)?;
+        seconds("media.upload_grace_s", self.media.upload_grace_s)?;
         ensure!(
             self.server.max_connections > 0
                 && self.server.max_connections <= tokio::sync::Semaphore::MAX_PERMITS.min(1 << 24),

@@ -37,7 +37,12 @@ async fn infer_inner(State(st): State<AppState>, req: Request) -> Result<Respons
     // Refuse before reading a byte of the upload when a component is missing.
     st.service.check_infer_ready()?;
     let header_key = super::handlers::idempotency_header(req.headers())?;
-    let (req, refused) = refuse_long_preamble(req).await?;
+    let media_cfg = &st.service.config().media;
+    let pace = UploadPace {
+        min_bytes_per_s: media_cfg.min_upload_bytes_per_s,
+        grace: std::time::Duration::from_secs_f64(media_cfg.upload_grace_s),
+    };
+    let (req, refused) = refuse_long_preamble(req, pace).await?;
     // A refusal by the guard surfaces in the parser as a body error; answer the guard's.
     let guard_err = |e: ApiError| {
         refused
@@ -318,6 +323,68 @@ impl MultipartGuard {
     }
 }
 
+/// The guard's refusal, for the handler to answer instead of the parser's generic body error.
+type Refusal = std::sync::Arc<std::sync::Mutex<Option<ApiError>>>;
+
+/// The slowest upload waited for: `min_bytes_per_s` on average from the first poll, after
+/// `grace`. `min_bytes_per_s = 0`: no minimum.
+#[derive(Debug, Clone, Copy)]
+struct UploadPace {
+    min_bytes_per_s: u64,
+    grace: std::time::Duration,
+}
+
+/// `body`, ended with an error (and a 408 `upload_too_slow` in `refused`) when the next chunk
+/// has not come by the time the average rate would fall below the minimum. A stalled client
+/// is refused at that deadline too, not at the request timeout.
+fn paced(
+    body: axum::body::BodyDataStream,
+    pace: UploadPace,
+    refused: Refusal,
+) -> futures::stream::BoxStream<'static, Result<Bytes, axum::Error>> {
+    if pace.min_bytes_per_s == 0 {
+        return body.boxed();
+    }
+    let start = tokio::time::Instant::now();
+    futures::stream::unfold((body, 0u64, false), move |(mut body, bytes, over)| {
+        let refused = refused.clone();
+        async move {
+            if over {
+                return None;
+            }
+            let due = start
+                + pace.grace
+                + std::time::Duration::from_secs_f64(bytes as f64 / pace.min_bytes_per_s as f64);
+            match tokio::time::timeout_at(due, body.next()).await {
+                Ok(Some(Ok(chunk))) => {
+                    let n = bytes + chunk.len() as u64;
+                    Some((Ok(chunk), (body, n, false)))
+                }
+                Ok(Some(Err(e))) => Some((Err(e), (body, bytes, true))),
+                Ok(None) => None,
+                Err(_) => {
+                    let secs = start.elapsed().as_secs_f64();
+                    let msg = format!(
+                        "the upload is too slow: {bytes} bytes in {secs:.1} s, below \
+                             media.min_upload_bytes_per_s = {}",
+                        pace.min_bytes_per_s
+                    );
+                    *refused.lock().unwrap_or_else(|p| p.into_inner()) = Some(ApiError::Body {
+                        status: StatusCode::REQUEST_TIMEOUT,
+                        kind: "upload_too_slow",
+                        message: msg.clone(),
+                    });
+                    Some((
+                        Err(axum::Error::new(std::io::Error::other(msg))),
+                        (body, bytes, true),
+                    ))
+                }
+            }
+        }
+    })
+    .boxed()
+}
+
 /// Puts a [`MultipartGuard`] in front of the multipart parser. The guard's first refusal (a
 /// preamble over [`MAX_MULTIPART_PREAMBLE`], a part header over [`MAX_PART_HEADER`]) is
 /// answered as it is, before the parser sees the bytes: the preamble is checked here, before
@@ -326,14 +393,15 @@ impl MultipartGuard {
 /// passes unchanged and the parser's own rejection names the problem.
 async fn refuse_long_preamble(
     req: Request,
-) -> Result<(Request, std::sync::Arc<std::sync::Mutex<Option<ApiError>>>), ApiError> {
-    let refused = std::sync::Arc::new(std::sync::Mutex::new(None::<ApiError>));
+    pace: UploadPace,
+) -> Result<(Request, Refusal), ApiError> {
+    let refused: Refusal = std::sync::Arc::new(std::sync::Mutex::new(None::<ApiError>));
     let Some(boundary) = boundary_of(&req) else {
         return Ok((req, refused));
     };
     let mut guard = MultipartGuard::new(boundary);
     let (parts, body) = req.into_parts();
-    let mut stream = body.into_data_stream();
+    let mut stream = paced(body.into_data_stream(), pace, refused.clone());
     // The preamble: read until the first delimiter (or the end), so that refusal needs no
     // parser at all.
     let mut head: Vec<u8> = Vec::new();
@@ -344,11 +412,14 @@ async fn refuse_long_preamble(
                 head.extend_from_slice(&chunk);
             }
             Some(Err(e)) => {
+                if let Some(why) = refused.lock().unwrap_or_else(|p| p.into_inner()).take() {
+                    return Err(why);
+                }
                 return Err(ApiError::Body {
                     status: StatusCode::BAD_REQUEST,
                     kind: "invalid_multipart",
                     message: format!("cannot read the request body: {e}"),
-                })
+                });
             }
             // The parser says what an unterminated body is.
             None => break,

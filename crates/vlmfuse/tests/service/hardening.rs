@@ -5,6 +5,7 @@
 use crate::support::{Resp, TestApp};
 use axum::body::Body;
 use axum::http::Request;
+use futures::StreamExt;
 use serde_json::Value;
 use std::time::{Duration, Instant};
 use tower::ServiceExt;
@@ -165,6 +166,53 @@ async fn quoted_boundaries_and_endless_part_headers_are_refused_at_once() {
         1,
         "only the good upload was stored"
     );
+}
+
+/// An upload that trickles (or stalls) below `media.min_upload_bytes_per_s` is refused with
+/// 408 once the average rate falls under it after the grace period, instead of holding its
+/// concurrency slot until the 300 s clip timeout; nothing is stored.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_trickling_upload_is_refused_at_the_minimum_rate() {
+    let tmp = tempfile::tempdir().unwrap();
+    let fake = FakeOpenAi::start();
+    let c = infer_config(tmp.path(), &fake).replacen(
+        "[media]\n",
+        "[media]\nmin_upload_bytes_per_s = 100000\nupload_grace_s = 0.3\n",
+        1,
+    );
+    assert!(c.contains("upload_grace_s"), "{c}");
+    let srv = TestApp::from_toml(tmp.path(), &c).await;
+    let head = format!(
+        "--{BOUNDARY}\r\nContent-Disposition: form-data; name=\"video\"; filename=\"a.mp4\"\r\n\r\n"
+    )
+    .into_bytes();
+    // The head, then one byte every 200 ms: 5 B/s.
+    let body = futures::stream::iter([Ok::<_, std::io::Error>(head)]).chain(
+        futures::stream::unfold(0, |i| async move {
+            tokio::time::sleep(Duration::from_millis(200)).await;
+            (i < 100).then_some((Ok(vec![b'x']), i + 1))
+        }),
+    );
+    let req = Request::builder()
+        .method("POST")
+        .uri("/v1/infer")
+        .header("content-type", content_type())
+        .body(Body::from_stream(body))
+        .unwrap();
+    let t = Instant::now();
+    let resp = srv.router().oneshot(req).await.unwrap();
+    let status = resp.status().as_u16();
+    let v: Value = serde_json::from_slice(
+        &axum::body::to_bytes(resp.into_body(), usize::MAX)
+            .await
+            .unwrap(),
+    )
+    .unwrap();
+    let took = t.elapsed();
+    assert_eq!(status, 408, "{v}");
+    assert_eq!(v["kind"], "upload_too_slow", "{v}");
+    assert!(took < Duration::from_secs(2), "took {took:?}");
+    assert_eq!(srv.state().await["rounds"], 0);
 }
 
 /// A long batch `/v1/fuse` holds the engine's read side while a feedback waits for the write
