@@ -73,7 +73,13 @@ struct Uploads {
     concat: Vec<u8>,
     truncated: Vec<u8>,
     preamble: Vec<u8>,
+    /// 1 MiB of junk before a boundary quoted with a `;` in it (`boundary="x;y"`).
+    quoted: Vec<u8>,
+    /// A part header that runs on for 1 MiB.
+    header: Vec<u8>,
 }
+
+const QUOTED_CT: &str = "multipart/form-data; boundary=\"x;y\"";
 
 #[derive(Default)]
 struct Tally {
@@ -120,7 +126,7 @@ async fn client_loop(
     let mut i = 0usize;
     while Instant::now() < until {
         i += 1;
-        let step = (c * 7 + i) % 20;
+        let step = (c * 7 + i) % 23;
         let (what, req) = match step {
             0..=6 => {
                 let ctx: Vec<f64> = (0..dim)
@@ -163,6 +169,20 @@ async fn client_loop(
             15 => ("truncated", upload(&http, &base, up.truncated.clone())),
             16 => ("preamble", upload(&http, &base, up.preamble.clone())),
             17 => ("state", http.get(format!("{base}/v1/state"))),
+            18 => (
+                "quoted",
+                http.post(format!("{base}/v1/infer"))
+                    .header("content-type", QUOTED_CT)
+                    .body(up.quoted.clone()),
+            ),
+            19 => ("header", upload(&http, &base, up.header.clone())),
+            // A refusal by the router before the body is read (405): `Connection: close`.
+            20 => (
+                "put",
+                http.put(format!("{base}/v1/infer"))
+                    .header("content-type", content_type())
+                    .body(up.good.clone()),
+            ),
             _ => ("healthz", http.get(format!("{base}/healthz"))),
         };
         match req.send().await {
@@ -228,6 +248,26 @@ fn soak_mixed_traffic_leaks_nothing_and_loses_no_feedback() {
         concat: multipart(&[("video", "list.ffconcat", concat.as_bytes())]),
         truncated: multipart(&[("video", "t.mp4", &good_bytes[..good_bytes.len() / 3])]),
         preamble,
+        quoted: {
+            let mut b = vec![b'x'; 1 << 20];
+            b.extend(
+                b"--x;y\r\nContent-Disposition: form-data; name=\"video\"; filename=\"a.mp4\"\r\n\r\n"
+                    .as_slice(),
+            );
+            b.extend_from_slice(&good_bytes);
+            b.extend(b"\r\n--x;y--\r\n".as_slice());
+            b
+        },
+        header: {
+            let mut b = format!(
+                "--{}\r\nContent-Disposition: form-data; name=\"video\"\r\nX-Pad: ",
+                vlmfuse_testkit::multipart::BOUNDARY
+            )
+            .into_bytes();
+            b.extend(std::iter::repeat_n(b'p', 1 << 20));
+            b.extend(b"\r\n\r\n--".as_slice());
+            b
+        },
     });
 
     let rt = tokio::runtime::Builder::new_multi_thread()
@@ -324,14 +364,22 @@ fn soak_mixed_traffic_leaks_nothing_and_loses_no_feedback() {
         .lock()
         .unwrap()
         .iter()
-        .filter(|(w, _)| w.as_str() != "preamble")
+        .filter(|(w, _)| !["preamble", "quoted", "header"].contains(&w.as_str()))
         .map(|(w, n)| (w.clone(), *n))
         .collect();
     assert!(
         unanswered.is_empty(),
         "requests without an answer: {unanswered:?}"
     );
-    for bad in ["hls", "ffconcat", "truncated", "preamble"] {
+    for bad in [
+        "hls",
+        "ffconcat",
+        "truncated",
+        "preamble",
+        "quoted",
+        "header",
+        "put",
+    ] {
         let wrong: Vec<_> = statuses
             .iter()
             .filter(|((w, s), _)| w == bad && !(400..500).contains(s))
