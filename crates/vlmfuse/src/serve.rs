@@ -30,6 +30,24 @@ async fn build_with(cfg: Config, metrics: Metrics) -> anyhow::Result<Started> {
     })
 }
 
+/// Hands freed heap back to the OS once a second (glibc's `malloc_trim`). Decoded frames and
+/// model activations are tens of MB per request, freed at its end; glibc keeps them in its
+/// per-thread arenas, so after a burst the RSS stayed at the peak's level although nothing was
+/// live (measured in the soak test: 157 MB one second after the load, 48 MB idle before it).
+async fn return_freed_memory() {
+    let mut tick = tokio::time::interval(std::time::Duration::from_secs(1));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    loop {
+        tick.tick().await;
+        #[cfg(all(target_os = "linux", target_env = "gnu"))]
+        // SAFETY: malloc_trim only returns free pages to the kernel; it takes the arena locks
+        // itself and is safe to call from any thread at any time.
+        unsafe {
+            libc::malloc_trim(0);
+        }
+    }
+}
+
 async fn shutdown_signal() {
     let ctrl_c = async {
         let _ = tokio::signal::ctrl_c().await;
@@ -81,6 +99,7 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
         // Tests and scripts read this line to learn the port when listening on port 0.
         println!("vlmfuse listening on http://{local}");
         tracing::info!("listening on http://{local}");
+        let _trim = tokio::spawn(return_freed_memory());
         crate::conn::serve(listener, app(state), limits, shutdown_signal())
             .await
             .context("serving")
