@@ -83,6 +83,51 @@ fn make(dir: &Path) {
         std::fs::write(dir.join(name), &d).unwrap();
         println!("{name}: {} bytes", d.len());
     }
+    // The report's shape: the whole index agrees on 80 million samples of 1000 bytes in one
+    // chunk (constant size, one stsc run, one stts run), so FFmpeg fills an index entry for
+    // every one of them.
+    let mut d = data.clone();
+    let stbl = [b"moov", b"trak", b"mdia", b"minf", b"stbl"];
+    let at = |d: &[u8], name: &'static [u8; 4]| {
+        let mut p: Vec<&[u8; 4]> = stbl.to_vec();
+        p.push(name);
+        find(d, 0, d.len(), &p).unwrap()
+    };
+    let (stsz, stsc, stts) = (at(&d, b"stsz"), at(&d, b"stsc"), at(&d, b"stts"));
+    put32(&mut d, stsz + 12, 1000);
+    put32(&mut d, stsz + 16, 80_000_000);
+    put32(&mut d, stsc + 12, 1);
+    put32(&mut d, stsc + 20, 80_000_000);
+    put32(&mut d, stts + 12, 1);
+    put32(&mut d, stts + 16, 80_000_000);
+    std::fs::write(dir.join("index-80M.mp4"), &d).unwrap();
+    println!("index-80M.mp4: {} bytes", d.len());
+    // A fragmented clip whose first `trun` declares 20 million samples and no per-sample
+    // fields (so the samples cost no bytes).
+    let frag = vlmfuse_testkit::clips::ffmpeg_to(
+        &[
+            "-f",
+            "lavfi",
+            "-i",
+            "color=c=red:size=16x16:rate=10:duration=1",
+            "-c:v",
+            "libx264",
+            "-preset",
+            "ultrafast",
+            "-pix_fmt",
+            "yuv420p",
+            "-movflags",
+            "+frag_keyframe+empty_moov",
+        ],
+        &dir.join("frag.mp4"),
+    );
+    let mut d = std::fs::read(&frag).unwrap();
+    let trun = find(&d, 0, d.len(), &[b"moof", b"traf", b"trun"]).unwrap();
+    let flags = u32::from_be_bytes(d[trun + 8..trun + 12].try_into().unwrap());
+    put32(&mut d, trun + 8, flags & !0xf00);
+    put32(&mut d, trun + 12, 20_000_000);
+    std::fs::write(dir.join("trun-20M.mp4"), &d).unwrap();
+    println!("trun-20M.mp4: {} bytes", d.len());
 }
 
 fn run(path: &Path) {
