@@ -704,8 +704,10 @@ mod tests {
     #[test]
     fn the_default_limit_is_two_minutes_at_1000_per_second() {
         assert_eq!(sample_limit(&MediaLimits::default()), 120_000);
-        let mut l = MediaLimits::default();
-        l.max_duration_s = 0.5;
+        let mut l = MediaLimits {
+            max_duration_s: 0.5,
+            ..MediaLimits::default()
+        };
         assert_eq!(sample_limit(&l), MIN_SAMPLE_LIMIT);
         for d in [1e9, f64::INFINITY, f64::NAN, -1.0] {
             l.max_duration_s = d;
@@ -885,7 +887,7 @@ mod tests {
             full(b"stco", &[1, 0]),
         ]
         .concat();
-        scan(&file(b"soun", &[tables.clone()])).unwrap();
+        scan(&file(b"soun", std::slice::from_ref(&tables))).unwrap();
         let minf = bx(b"minf", &[hdlr(b"vide"), bx(b"stbl", &tables)].concat());
         let trak = bx(b"trak", &bx(b"mdia", &[hdlr(b"soun"), minf].concat()));
         assert_eq!(refused(&bx(b"moov", &trak)), ("stsz", 80_000_000, 120_000));
