@@ -19,9 +19,17 @@
 //! * the box sizes are inconsistent inside the index (a size under the header's, a child that
 //!   overruns its parent): FFmpeg would clamp and carry on, reading the rest as garbage.
 //!
-//! The scan's own work is bounded: at most [`MAX_BOXES`] boxes, at most [`MAX_DEPTH`] levels,
-//! and the only entries it reads are the `stsc` runs of uncompressed-audio tracks, which are
-//! at most [`sample_limit`] long once checked.
+//! FFmpeg reads a table wherever its generic box reader meets one, not only in `stbl`, and the
+//! last one read wins; so the scan also walks the containers FFmpeg walks that way (`udta`,
+//! `meta`, `dinf`, ..., leniently: their sizes are handled as FFmpeg handles them and never
+//! refuse a file), looks for tables by name inside sample descriptions (`stsd`), whose
+//! extension boxes FFmpeg reads the same way, and refuses compressed headers (`cmov`), which
+//! it cannot see into.
+//!
+//! The scan's own work is bounded: at most [`MAX_BOXES`] boxes and [`MAX_DEPTH`] levels; the
+//! only bytes it reads beyond headers and counts are the `stsc` runs (at most
+//! [`sample_limit`] entries in all) and sample descriptions and `meta` heads (at most
+//! [`MAX_SEARCHED_BYTES`] each, [`MAX_SEARCHED_TOTAL`] in all).
 
 use std::fs::File;
 use std::io::{BufReader, Read, Seek};
@@ -46,6 +54,10 @@ pub(crate) const MAX_SAMPLES_PER_SECOND: f64 = 1000.0;
 /// The most bytes of a `stsd` or of the head of a `meta` that the scan reads to find the
 /// boxes inside (a sample description is a few hundred bytes).
 const MAX_SEARCHED_BYTES: u64 = 1 << 20;
+
+/// The most bytes all those whole reads of one file may add up to (nested `meta` boxes read
+/// overlapping heads).
+const MAX_SEARCHED_TOTAL: u64 = 8 << 20;
 
 /// The boxes looked for inside sample descriptions, with the fewest payload bytes each needs
 /// to be read: those that allocate by a declared count, `hdlr` (it decides how a track is
@@ -111,6 +123,8 @@ pub(crate) fn check_reader<R: Read + Seek>(
         limit: sample_limit(limits),
         boxes: 0,
         samples: 0,
+        searched: 0,
+        stsc_read: 0,
     };
     scan.children(0, len, 0, true, Parent::File, &mut Track::default())
 }
@@ -179,6 +193,28 @@ struct Scanner<R> {
     boxes: u64,
     /// Samples declared so far by sample-indexed tracks and fragments.
     samples: u64,
+    /// Bytes read whole so far (sample descriptions, heads of `meta`), against
+    /// [`MAX_SEARCHED_TOTAL`].
+    searched: u64,
+    /// `stsc` entries read so far, against the sample limit: each track has at most one per
+    /// chunk, but the same bytes can be reached as many boxes from inside a description.
+    stsc_read: u64,
+}
+
+impl<R: Read + Seek> Scanner<R> {
+    /// Reads `[at, at + len)` whole, within the scan's budget of such reads.
+    fn read_whole(&mut self, at: u64, len: u64) -> Result<Vec<u8>, MediaError> {
+        self.searched = self.searched.saturating_add(len);
+        if self.searched > MAX_SEARCHED_TOTAL {
+            return Err(MediaError::Corrupt(format!(
+                "the MP4's sample descriptions and metadata headers exceed \
+                 {MAX_SEARCHED_TOTAL} bytes"
+            )));
+        }
+        let mut data = vec![0u8; len as usize];
+        self.src.read_at(at, &mut data)?;
+        Ok(data)
+    }
 }
 
 fn fourcc(kind: &[u8; 4]) -> String {
@@ -394,6 +430,10 @@ impl<R: Read + Seek> Scanner<R> {
                 let count = self.counted("stsc", &kind, body, payload, 12)?;
                 // Checked against the limit and the box's bytes above, so this reads at most
                 // `limit` × 12 bytes.
+                self.stsc_read = self.stsc_read.saturating_add(count);
+                if self.stsc_read > self.limit {
+                    return Err(too_many("stsc", self.stsc_read, self.limit));
+                }
                 track.stsc.clear();
                 let mut e = [0u8; 12];
                 for i in 0..count {
@@ -494,8 +534,7 @@ impl<R: Read + Seek> Scanner<R> {
         track: &mut Track,
     ) -> Result<(), MediaError> {
         let len = (end - body).min(MAX_SEARCHED_BYTES);
-        let mut data = vec![0u8; len as usize];
-        self.src.read_at(body, &mut data)?;
+        let data = self.read_whole(body, len)?;
         let found = data
             .chunks_exact(4)
             .enumerate()
@@ -532,8 +571,7 @@ impl<R: Read + Seek> Scanner<R> {
                 "a sample description of {len} bytes, more than {MAX_SEARCHED_BYTES}"
             )));
         }
-        let mut data = vec![0u8; len as usize];
-        self.src.read_at(body, &mut data)?;
+        let data = self.read_whole(body, len)?;
         for i in 4..data.len().saturating_sub(4) {
             let kind = [data[i], data[i + 1], data[i + 2], data[i + 3]];
             let Some(&(_, needs)) = RAW_SCANNED.iter().find(|(k, _)| **k == kind) else {
@@ -927,5 +965,16 @@ mod tests {
             deep = bx(b"moov", &deep);
         }
         assert!(matches!(scan(&deep), Err(MediaError::Corrupt(ref m)) if m.contains("deeper")));
+        // The stsc runs it reads add up against the sample limit, however many boxes hold them.
+        let mut runs = vec![12_000];
+        runs.extend(std::iter::repeat_n(1, 3 * 12_000));
+        let stsc = full(b"stsc", &runs);
+        let f = file(b"soun", &vec![stsc; 11]);
+        assert_eq!(refused(&f), ("stsc", 132_000, 120_000));
+        // Sample descriptions are read whole, so a huge one is refused.
+        let stsd = bx(b"stsd", &vec![0u8; MAX_SEARCHED_BYTES as usize + 1]);
+        assert!(
+            matches!(scan(&file(b"vide", &[stsd])), Err(MediaError::Corrupt(ref m)) if m.contains("sample description"))
+        );
     }
 }
