@@ -541,7 +541,8 @@ impl Store {
 
     /// After an open that found a non-empty write-ahead log of `wal_bytes` and replayed
     /// `frames_recovered` of its frames: the counts, when they suggest the log was damaged
-    /// (SQLite recovered none of its frames, or the database holds no round). SQLite silently
+    /// (SQLite recovered none of its frames, or fewer than the file holds and the database
+    /// holds no round). SQLite silently
     /// cuts a log at its first bad checksum, so this is the only trace such a loss leaves.
     fn judge_wal(
         &self,
@@ -552,7 +553,10 @@ impl Store {
         let page: i64 = self.conn.query_row("PRAGMA page_size", [], |r| r.get(0))?;
         // A WAL is a 32-byte header and frames of a 24-byte header plus one page.
         let frames_in_file = wal_bytes.saturating_sub(32) / (page.max(512) as u64 + 24);
-        Ok((frames_recovered == 0 || rounds == 0).then_some(WalReport {
+        // No round is suspicious only when frames were lost too: a server killed before its
+        // first round leaves a log of nothing but the schema, all of it recovered.
+        let damaged = frames_recovered == 0 || (rounds == 0 && frames_recovered < frames_in_file);
+        Ok(damaged.then_some(WalReport {
             wal_bytes,
             frames_in_file,
             frames_recovered,

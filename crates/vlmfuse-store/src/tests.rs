@@ -506,4 +506,16 @@ fn a_damaged_write_ahead_log_is_reported_at_open() {
     drop(s);
     let s = Store::open(dir.path()).unwrap();
     assert_eq!(s.damaged_wal, None);
+
+    // Killed before its first round: a log of the schema alone, all recovered, is no damage.
+    let fresh = tempfile::tempdir().unwrap();
+    let held = Store::open(fresh.path()).unwrap();
+    let to = tempfile::tempdir().unwrap();
+    let fresh_db = fresh.path().join(DB_FILE);
+    std::fs::copy(&fresh_db, to.path().join(DB_FILE)).unwrap();
+    std::fs::copy(wal_path(&fresh_db), wal_path(&to.path().join(DB_FILE))).unwrap();
+    drop(held);
+    let s = Store::open(to.path()).unwrap();
+    assert_eq!(s.counts().unwrap(), (0, 0));
+    assert_eq!(s.damaged_wal, None);
 }
