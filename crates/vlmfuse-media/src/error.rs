@@ -82,6 +82,22 @@ pub enum MediaError {
          {max_frames} (a very high frame rate with few keyframes)"
     )]
     TooManyFrames { frames: u64, max_frames: u64 },
+    /// An MP4/MOV whose sample tables declare more samples or entries than the file could
+    /// hold or the limits allow (a 3 KB file claiming 80 million samples), refused by a scan
+    /// of the box headers before FFmpeg, which would allocate for every declared entry, opens
+    /// it. `table` is the box that declared them (`stsz`, `trun`, ...); `declared` is its count
+    /// (for `stsz`/`trun`: the file's running total of samples) and `limit` what it may be:
+    /// what the box has bytes for, or the limit derived from
+    /// [`crate::MediaLimits::max_duration_s`].
+    #[error(
+        "the container's {table} table declares {declared} samples or entries, more than the \
+         {limit} this file can hold or the limits allow"
+    )]
+    TooManySamples {
+        table: &'static str,
+        declared: u64,
+        limit: u64,
+    },
     /// The request asked for something impossible (zero frames, a zero-sized output, ...).
     #[error("invalid sampling options: {0}")]
     InvalidOptions(String),
@@ -128,7 +144,8 @@ impl MediaError {
             | MediaError::Corrupt(_)
             | MediaError::TooLong { .. }
             | MediaError::ResolutionTooHigh { .. }
-            | MediaError::TooManyFrames { .. } => MediaErrorClass::Rejected,
+            | MediaError::TooManyFrames { .. }
+            | MediaError::TooManySamples { .. } => MediaErrorClass::Rejected,
             MediaError::Io(_) | MediaError::Internal(_) => MediaErrorClass::Internal,
             MediaError::Cancelled | MediaError::DeadlineExceeded => MediaErrorClass::Interrupted,
         }
@@ -148,6 +165,7 @@ impl MediaError {
             MediaError::TooLong { .. } => "too_long",
             MediaError::ResolutionTooHigh { .. } => "resolution_too_high",
             MediaError::TooManyFrames { .. } => "too_many_frames",
+            MediaError::TooManySamples { .. } => "too_many_samples",
             MediaError::InvalidOptions(_) => "invalid_options",
             MediaError::Io(_) => "io",
             MediaError::Internal(_) => "internal",

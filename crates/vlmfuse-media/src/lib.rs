@@ -13,6 +13,9 @@
 //!   when that skips work and decodes forward when the next target is close, choosing per
 //!   clip from the keyframe index (seeking loses on short clips with sparse keyframes).
 //!
+//! * MP4/MOV sample tables are checked before FFmpeg reads them (`mp4scan`): FFmpeg allocates
+//!   for every sample a table declares, so a few KB declaring millions of samples would cost
+//!   gigabytes; such files are refused with [`MediaError::TooManySamples`].
 //! * The limits hold for every decoded frame, not only for the header (a stream can change
 //!   resolution midway), and the decode work itself is bounded
 //!   ([`MediaLimits::max_frames_decoded`]), not only the file size.
@@ -25,6 +28,7 @@
 mod convert;
 mod error;
 mod interrupt;
+mod mp4scan;
 mod probe;
 mod sample;
 
@@ -337,6 +341,11 @@ mod tests {
             MediaError::TooManyFrames {
                 frames: 2,
                 max_frames: 1,
+            },
+            MediaError::TooManySamples {
+                table: "stsz",
+                declared: 2,
+                limit: 1,
             },
             MediaError::NoVideoStream,
             MediaError::UnsupportedCodec("x".into()),

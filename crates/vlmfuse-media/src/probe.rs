@@ -99,6 +99,12 @@ pub(crate) fn open(
 
     let head = read_head(path)?;
     let format = detect_format(&head)?;
+    // SAFETY: `format` came from FFmpeg's static demuxer table; its name is static.
+    let demuxer = unsafe { CStr::from_ptr((*format).name) };
+    if demuxer.to_bytes().starts_with(b"mov,") {
+        // Before FFmpeg reads the sample tables, which it allocates for by declared count.
+        crate::mp4scan::check(path, bytes, limits)?;
+    }
     let (ictx, guard) = open_input(path, format, interrupt)?;
 
     let Some(stream_index) = pick_video_stream(&ictx) else {

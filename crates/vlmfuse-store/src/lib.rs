@@ -9,9 +9,13 @@
 //! them on start ([`Store::load_engine`]); that keeps each feedback's transaction small (one row,
 //! not a snapshot of the bank) and makes a restart equal, bit for bit, to never having stopped.
 
-use rusqlite::{params, Connection, OptionalExtension, TransactionBehavior};
+use rusqlite::{params, Connection, OpenFlags, OptionalExtension, TransactionBehavior};
 use serde::{Deserialize, Serialize};
+use std::fs::File;
+use std::io::{Read, Write};
+use std::os::fd::AsRawFd;
 use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
 use vlmfuse_fusion::replay::{FeedbackEvent, Replay, ReplayError, RoundEvent, StoredLabel};
 #[cfg(test)]
 use vlmfuse_fusion::LabelledRound;
@@ -22,6 +26,10 @@ pub const SCHEMA_VERSION: i64 = 1;
 
 /// The file under the data directory.
 pub const DB_FILE: &str = "vlmfuse.db";
+
+/// The lock file under the data directory: held (`flock`, exclusive) by the one process whose
+/// [`Store`] writes there, and holding that process's pid for the error a second one gets.
+pub const LOCK_FILE: &str = "LOCK";
 
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
@@ -44,6 +52,93 @@ pub enum StoreError {
     Corrupt(String),
     #[error("rebuilding the engine failed: {0}")]
     Fusion(#[from] FusionError),
+    /// Another [`Store`] (another server, or another open in this process) holds the data
+    /// directory's [`LOCK_FILE`]. Two writers would hand out the same round numbers, so the
+    /// second is refused at open instead of failing every write later.
+    #[error(
+        "the data directory {} is in use by another vlmfuse store ({}); stop that server or \
+         give this one another server.data_dir",
+        .dir.display(),
+        holder(*.pid)
+    )]
+    Locked { dir: PathBuf, pid: Option<u32> },
+    /// The lock file could not be created, read or locked (permissions, a file system
+    /// without `flock`).
+    #[error("cannot lock the data directory through {path}: {source}")]
+    Lock {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+}
+
+fn holder(pid: Option<u32>) -> String {
+    match pid {
+        Some(pid) if pid == std::process::id() => format!("pid {pid}, this process"),
+        Some(pid) => format!("pid {pid}"),
+        None => "pid unknown".into(),
+    }
+}
+
+/// The exclusive lock on a data directory, held for as long as its [`Store`] lives.
+///
+/// `flock(2)` rather than the lock file's mere existence: the kernel drops the lock when the
+/// holder exits however it exits (`kill -9` included), so a crash never leaves a stale lock
+/// behind, and two opens in one process conflict too (each open file is its own lock owner).
+/// The file is never deleted: unlinking a lock file while another process waits on it lets two
+/// processes hold "the" lock on two different inodes.
+#[derive(Debug)]
+struct DirLock {
+    _file: File,
+}
+
+impl DirLock {
+    /// Takes the lock of `dir`, retrying for up to `wait` while another holder has it.
+    fn acquire(dir: &Path, wait: Duration) -> Result<Self, StoreError> {
+        let path = dir.join(LOCK_FILE);
+        let lock_err = |source| StoreError::Lock {
+            path: path.clone(),
+            source,
+        };
+        let mut file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&path)
+            .map_err(lock_err)?;
+        let deadline = Instant::now() + wait;
+        loop {
+            // SAFETY: flock on a file descriptor this function owns; no memory is involved.
+            if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } == 0 {
+                break;
+            }
+            let err = std::io::Error::last_os_error();
+            match err.kind() {
+                std::io::ErrorKind::Interrupted => continue,
+                std::io::ErrorKind::WouldBlock if Instant::now() < deadline => {
+                    std::thread::sleep(Duration::from_millis(50));
+                }
+                std::io::ErrorKind::WouldBlock => {
+                    let mut text = String::new();
+                    // The holder may be between truncating and writing: then the pid is unknown.
+                    let pid = file
+                        .read_to_string(&mut text)
+                        .ok()
+                        .and_then(|_| text.trim().parse().ok());
+                    return Err(StoreError::Locked {
+                        dir: dir.to_path_buf(),
+                        pid,
+                    });
+                }
+                _ => return Err(lock_err(err)),
+            }
+        }
+        file.set_len(0).map_err(lock_err)?;
+        // The cursor is still at 0: nothing was read on the way to taking the lock.
+        file.write_all(format!("{}\n", std::process::id()).as_bytes())
+            .map_err(lock_err)?;
+        Ok(DirLock { _file: file })
+    }
 }
 
 impl From<ReplayError> for StoreError {
@@ -295,20 +390,66 @@ CREATE TABLE IF NOT EXISTS state (
 );
 ";
 
-/// The database. One `Store` is the service's single writer; open another for reads elsewhere.
+/// What [`Store::open`] found of a write-ahead log that looks damaged.
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct WalReport {
+    wal_bytes: u64,
+    /// Frames the file's size holds room for (some may be stale leftovers of an earlier log).
+    frames_in_file: u64,
+    /// Frames SQLite found valid and replayed.
+    frames_recovered: u64,
+    rounds: u64,
+    feedback: u64,
+}
+
+/// Replays the write-ahead log (SQLite does on the first read) and checkpoints it, as the
+/// first automatic checkpoint would: the number of valid frames it held.
+fn checkpoint(conn: &Connection) -> Result<u64, StoreError> {
+    let (_busy, log, _done): (i64, i64, i64) =
+        conn.query_row("PRAGMA wal_checkpoint(PASSIVE)", [], |r| {
+            Ok((r.get(0)?, r.get(1)?, r.get(2)?))
+        })?;
+    Ok(log.max(0) as u64)
+}
+
+fn wal_path(db: &Path) -> PathBuf {
+    let mut p = db.as_os_str().to_owned();
+    p.push("-wal");
+    PathBuf::from(p)
+}
+
+/// The database. One `Store` is the service's single writer, and holds the data directory's
+/// lock ([`LOCK_FILE`]) for as long as it lives; [`Store::open_read_only`] opens another for
+/// reads beside it.
 pub struct Store {
     conn: Connection,
     path: PathBuf,
+    /// What [`Store::open`] found of a damaged write-ahead log (logged as a warning).
+    damaged_wal: Option<WalReport>,
+    /// Dropped after `conn` (fields drop in order), so the lock outlives the last write.
+    _lock: Option<DirLock>,
 }
 
 impl Store {
-    /// Opens (creating if needed) the database under `dir`.
+    /// Opens (creating if needed) the database under `dir`, taking the directory's lock:
+    /// [`StoreError::Locked`] at once when another store holds it, in this process or another.
     pub fn open(dir: &Path) -> Result<Self, StoreError> {
+        Self::open_waiting(dir, Duration::ZERO)
+    }
+
+    /// [`Store::open`] that waits up to `wait` for another holder to let go of the lock before
+    /// refusing: for a restart that may overlap the previous process's last commit.
+    pub fn open_waiting(dir: &Path, wait: Duration) -> Result<Self, StoreError> {
         std::fs::create_dir_all(dir).map_err(|source| StoreError::DataDir {
             path: dir.to_path_buf(),
             source,
         })?;
+        let lock = DirLock::acquire(dir, wait)?;
         let path = dir.join(DB_FILE);
+        // Read before SQLite opens the log: after open it is either replayed or gone.
+        let wal_bytes = std::fs::metadata(wal_path(&path))
+            .map(|m| m.len())
+            .unwrap_or(0);
         let conn = Connection::open(&path)?;
         // WAL lets a reader see the last commit while the writer works; FULL syncs the WAL on
         // every commit, which is what "acknowledged only after it commits" needs.
@@ -316,6 +457,12 @@ impl Store {
         conn.pragma_update(None, "synchronous", "FULL")?;
         conn.pragma_update(None, "foreign_keys", "ON")?;
         conn.busy_timeout(std::time::Duration::from_secs(10))?;
+        // Before this open writes anything, or the count would include its own frames.
+        let recovered = if wal_bytes > 0 {
+            Some(checkpoint(&conn)?)
+        } else {
+            None
+        };
         conn.execute_batch(SCHEMA)?;
         let version: Option<String> = conn
             .query_row(
@@ -346,7 +493,76 @@ impl Store {
         if !has_order {
             conn.execute("ALTER TABLE feedback ADD COLUMN rounds_before INTEGER", [])?;
         }
-        Ok(Self { conn, path })
+        let mut store = Self {
+            conn,
+            path,
+            damaged_wal: None,
+            _lock: Some(lock),
+        };
+        if let Some(frames_recovered) = recovered {
+            store.damaged_wal = store.judge_wal(wal_bytes, frames_recovered)?;
+        }
+        if let Some(w) = &store.damaged_wal {
+            tracing::warn!(
+                db = %store.path.display(),
+                wal_bytes = w.wal_bytes,
+                wal_frames_in_file = w.frames_in_file,
+                wal_frames_recovered = w.frames_recovered,
+                rounds = w.rounds,
+                feedback = w.feedback,
+                "the database's write-ahead log was not empty at open, but SQLite recovered {} \
+                 of its ~{} frames and the database holds {} rounds: if rounds were stored \
+                 before, the log was damaged and they are lost",
+                w.frames_recovered,
+                w.frames_in_file,
+                w.rounds
+            );
+        }
+        Ok(store)
+    }
+
+    /// Opens the database under `dir` for reading only, without the directory's lock: for
+    /// tools and tests that look at a data directory a running server holds. Writes through it
+    /// fail.
+    pub fn open_read_only(dir: &Path) -> Result<Self, StoreError> {
+        let path = dir.join(DB_FILE);
+        let conn = Connection::open_with_flags(
+            &path,
+            OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX,
+        )?;
+        conn.busy_timeout(std::time::Duration::from_secs(10))?;
+        Ok(Self {
+            conn,
+            path,
+            damaged_wal: None,
+            _lock: None,
+        })
+    }
+
+    /// After an open that found a non-empty write-ahead log of `wal_bytes` and replayed
+    /// `frames_recovered` of its frames: the counts, when they suggest the log was damaged
+    /// (SQLite recovered none of its frames, or fewer than the file holds and the database
+    /// holds no round). SQLite silently
+    /// cuts a log at its first bad checksum, so this is the only trace such a loss leaves.
+    fn judge_wal(
+        &self,
+        wal_bytes: u64,
+        frames_recovered: u64,
+    ) -> Result<Option<WalReport>, StoreError> {
+        let (rounds, feedback) = self.counts()?;
+        let page: i64 = self.conn.query_row("PRAGMA page_size", [], |r| r.get(0))?;
+        // A WAL is a 32-byte header and frames of a 24-byte header plus one page.
+        let frames_in_file = wal_bytes.saturating_sub(32) / (page.max(512) as u64 + 24);
+        // No round is suspicious only when frames were lost too: a server killed before its
+        // first round leaves a log of nothing but the schema, all of it recovered.
+        let damaged = frames_recovered == 0 || (rounds == 0 && frames_recovered < frames_in_file);
+        Ok(damaged.then_some(WalReport {
+            wal_bytes,
+            frames_in_file,
+            frames_recovered,
+            rounds,
+            feedback,
+        }))
     }
 
     pub fn path(&self) -> &Path {

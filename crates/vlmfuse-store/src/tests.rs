@@ -356,3 +356,166 @@ fn idempotency_keys_commit_with_their_rounds_and_expire() {
     assert!(err.is_err());
     assert_eq!(store.idempotency_keys().unwrap(), 0);
 }
+
+/// One writer per data directory: a second open, here in the same process, is refused while
+/// the first lives and names the directory and the holder; the lock goes with the store.
+#[test]
+fn a_second_open_of_a_data_directory_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut first = Store::open(dir.path()).unwrap();
+    play(&mut engine(), &mut first, 0, 3);
+    let err = match Store::open(dir.path()) {
+        Err(e) => e,
+        Ok(_) => panic!("a second store opened the data directory"),
+    };
+    let me = std::process::id();
+    match &err {
+        StoreError::Locked { dir: d, pid } => {
+            assert_eq!(d, dir.path());
+            assert_eq!(*pid, Some(me));
+        }
+        other => panic!("{other:?}"),
+    }
+    let msg = err.to_string();
+    assert!(msg.contains(&dir.path().display().to_string()), "{msg}");
+    assert!(msg.contains(&format!("pid {me}")), "{msg}");
+    // Waiting does not help while the holder lives, and costs about the wait.
+    let t = std::time::Instant::now();
+    assert!(matches!(
+        Store::open_waiting(dir.path(), Duration::from_millis(200)),
+        Err(StoreError::Locked { .. })
+    ));
+    assert!(t.elapsed() >= Duration::from_millis(200));
+    // Readers need no lock.
+    let reader = Store::open_read_only(dir.path()).unwrap();
+    assert_eq!(reader.counts().unwrap(), (3, 3));
+    drop(first);
+    let mut again = Store::open(dir.path()).unwrap();
+    assert_eq!(again.counts().unwrap(), (3, 3));
+    assert_eq!(again.prune_idempotency(0).unwrap(), 0);
+}
+
+/// Where [`lock_holder`] holds its lock, when this test binary runs as that child.
+const HOLDER_ENV: &str = "VLMFUSE_STORE_LOCK_HOLDER_DIR";
+
+/// Not a test of its own: the child process of
+/// [`a_lock_held_by_another_process_is_refused_and_dies_with_it`], which opens the store in
+/// the directory it is given, says so, and holds it until it is killed. Without the variable
+/// it returns at once.
+#[test]
+fn lock_holder() {
+    let Ok(dir) = std::env::var(HOLDER_ENV) else {
+        return;
+    };
+    let _store = Store::open(Path::new(&dir)).unwrap();
+    println!("HOLDING {}", std::process::id());
+    std::io::stdout().flush().unwrap();
+    loop {
+        std::thread::sleep(Duration::from_secs(60));
+    }
+}
+
+#[test]
+fn a_lock_held_by_another_process_is_refused_and_dies_with_it() {
+    use std::io::BufRead;
+    use std::process::{Command, Stdio};
+
+    struct KillOnDrop(std::process::Child);
+    impl Drop for KillOnDrop {
+        fn drop(&mut self) {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+
+    let dir = tempfile::tempdir().unwrap();
+    let mut child = KillOnDrop(
+        Command::new(std::env::current_exe().unwrap())
+            .args(["--exact", "tests::lock_holder", "--nocapture"])
+            .env(HOLDER_ENV, dir.path())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
+    let child_pid = child.0.id();
+    let mut lines = std::io::BufReader::new(child.0.stdout.take().unwrap()).lines();
+    let holding = lines
+        .by_ref()
+        .map_while(Result::ok)
+        .find(|l| l.starts_with("HOLDING"))
+        .expect("the child took the lock");
+    assert_eq!(holding, format!("HOLDING {child_pid}"));
+
+    match Store::open(dir.path()) {
+        Err(StoreError::Locked { dir: d, pid }) => {
+            assert_eq!(d, dir.path());
+            assert_eq!(pid, Some(child_pid));
+        }
+        Err(other) => panic!("{other:?}"),
+        Ok(_) => panic!("opened a data directory another process holds"),
+    }
+    // `kill -9`: the kernel releases the lock with the process; nothing stale is left.
+    child.0.kill().unwrap();
+    child.0.wait().unwrap();
+    let store = Store::open(dir.path()).unwrap();
+    assert_eq!(store.counts().unwrap(), (0, 0));
+    let pid = std::fs::read_to_string(dir.path().join(LOCK_FILE)).unwrap();
+    assert_eq!(pid.trim(), std::process::id().to_string());
+}
+
+/// Rounds that only the write-ahead log held, behind a damaged log header: SQLite opens the
+/// database without them and says nothing, so the open reports the counts it found.
+#[test]
+fn a_damaged_write_ahead_log_is_reported_at_open() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut store = Store::open(dir.path()).unwrap();
+    play(&mut engine(), &mut store, 0, 10);
+    let db = dir.path().join(DB_FILE);
+    let wal = wal_path(&db);
+    // A copy of the files as a `kill -9` leaves them: the rounds are in the log only.
+    let copy = |damage: bool| {
+        let to = tempfile::tempdir().unwrap();
+        std::fs::copy(&db, to.path().join(DB_FILE)).unwrap();
+        let mut log = std::fs::read(&wal).unwrap();
+        assert!(log.len() > 32, "the rounds are in the log");
+        if damage {
+            // The header's checksum: the whole log is then ignored.
+            for b in &mut log[24..32] {
+                *b ^= 0xff;
+            }
+        }
+        std::fs::write(wal_path(&to.path().join(DB_FILE)), &log).unwrap();
+        to
+    };
+    let intact = copy(false);
+    let damaged = copy(true);
+    drop(store);
+
+    let s = Store::open(intact.path()).unwrap();
+    assert_eq!(s.counts().unwrap(), (10, 8));
+    assert_eq!(s.damaged_wal, None);
+
+    let s = Store::open(damaged.path()).unwrap();
+    assert_eq!(s.counts().unwrap(), (0, 0));
+    let w = s.damaged_wal.clone().expect("reported");
+    assert_eq!((w.frames_recovered, w.rounds, w.feedback), (0, 0, 0));
+    assert!(w.wal_bytes > 32 && w.frames_in_file > 0, "{w:?}");
+
+    // A clean close leaves no log, and nothing to report.
+    drop(s);
+    let s = Store::open(dir.path()).unwrap();
+    assert_eq!(s.damaged_wal, None);
+
+    // Killed before its first round: a log of the schema alone, all recovered, is no damage.
+    let fresh = tempfile::tempdir().unwrap();
+    let held = Store::open(fresh.path()).unwrap();
+    let to = tempfile::tempdir().unwrap();
+    let fresh_db = fresh.path().join(DB_FILE);
+    std::fs::copy(&fresh_db, to.path().join(DB_FILE)).unwrap();
+    std::fs::copy(wal_path(&fresh_db), wal_path(&to.path().join(DB_FILE))).unwrap();
+    drop(held);
+    let s = Store::open(to.path()).unwrap();
+    assert_eq!(s.counts().unwrap(), (0, 0));
+    assert_eq!(s.damaged_wal, None);
+}

@@ -292,6 +292,14 @@ mod tests {
                 },
                 422,
             ),
+            (
+                MediaError::TooManySamples {
+                    table: "stsz",
+                    declared: 2,
+                    limit: 1,
+                },
+                422,
+            ),
             (MediaError::Io(std::io::Error::other("disk")), 500),
             (MediaError::Internal("x".into()), 500),
         ];

@@ -167,6 +167,9 @@ fn clear_spool(dir: &std::path::Path) -> std::io::Result<usize> {
     Ok(removed)
 }
 
+/// How long a starting service waits for another holder of the data directory's lock.
+const STORE_LOCK_WAIT: Duration = Duration::from_secs(5);
+
 impl Service {
     /// Opens the store, rebuilds the engine from it, loads the clip pipeline and starts the
     /// writer. The writer thread ends once every handle to the service is dropped, after
@@ -183,7 +186,10 @@ impl Service {
             cfg.reporters.clone(),
         )
         .context("fusion engine")?;
-        let mut store = Store::open(&cfg.server.data_dir)?;
+        // The data directory's lock: a second server on it is refused here, naming the
+        // holder's pid, instead of colliding on round numbers later. The wait covers a restart
+        // that overlaps the previous process's last commit.
+        let mut store = Store::open_waiting(&cfg.server.data_dir, STORE_LOCK_WAIT)?;
         let spool = cfg.spool_dir();
         let stale = clear_spool(&spool)
             .with_context(|| format!("upload spool directory {}", spool.display()))?;

@@ -43,7 +43,8 @@ async fn raw(srv: &TestApp, path: &str, body: &str) -> Resp {
 
 /// The state through the API and the row counts in the database.
 async fn snapshot(srv: &TestApp) -> (Value, (u64, u64)) {
-    let store = vlmfuse_store::Store::open(&srv.data_dir).unwrap();
+    // Read-only: the running service holds the data directory's lock.
+    let store = vlmfuse_store::Store::open_read_only(&srv.data_dir).unwrap();
     (srv.state().await, store.counts().unwrap())
 }
 
