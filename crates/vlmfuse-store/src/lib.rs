@@ -35,6 +35,13 @@ pub const LOCK_FILE: &str = "LOCK";
 pub enum StoreError {
     #[error("database error: {0}")]
     Sqlite(#[from] rusqlite::Error),
+    /// SQLite refused to open or set up the database file (read-only, not a database, full):
+    /// the path says which file, which a bare SQLite message does not.
+    #[error("cannot open the database {path}: {source}")]
+    Open {
+        path: PathBuf,
+        source: rusqlite::Error,
+    },
     #[error("cannot create data directory {path}: {source}")]
     DataDir {
         path: PathBuf,
@@ -450,20 +457,27 @@ impl Store {
         let wal_bytes = std::fs::metadata(wal_path(&path))
             .map(|m| m.len())
             .unwrap_or(0);
-        let conn = Connection::open(&path)?;
+        let at = |source: rusqlite::Error| StoreError::Open {
+            path: path.clone(),
+            source,
+        };
+        let conn = Connection::open(&path).map_err(at)?;
         // WAL lets a reader see the last commit while the writer works; FULL syncs the WAL on
         // every commit, which is what "acknowledged only after it commits" needs.
-        conn.pragma_update(None, "journal_mode", "WAL")?;
-        conn.pragma_update(None, "synchronous", "FULL")?;
-        conn.pragma_update(None, "foreign_keys", "ON")?;
-        conn.busy_timeout(std::time::Duration::from_secs(10))?;
+        conn.pragma_update(None, "journal_mode", "WAL")
+            .map_err(at)?;
+        conn.pragma_update(None, "synchronous", "FULL")
+            .map_err(at)?;
+        conn.pragma_update(None, "foreign_keys", "ON").map_err(at)?;
+        conn.busy_timeout(std::time::Duration::from_secs(10))
+            .map_err(at)?;
         // Before this open writes anything, or the count would include its own frames.
         let recovered = if wal_bytes > 0 {
             Some(checkpoint(&conn)?)
         } else {
             None
         };
-        conn.execute_batch(SCHEMA)?;
+        conn.execute_batch(SCHEMA).map_err(at)?;
         let version: Option<String> = conn
             .query_row(
                 "SELECT value FROM meta WHERE key = 'schema_version'",

@@ -519,3 +519,21 @@ fn a_damaged_write_ahead_log_is_reported_at_open() {
     assert_eq!(s.counts().unwrap(), (0, 0));
     assert_eq!(s.damaged_wal, None);
 }
+
+/// A file that is not a database (or one SQLite cannot write) is refused with its path: a bare
+/// "file is not a database" does not say which file.
+#[test]
+fn an_unusable_database_file_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join(DB_FILE), vec![b'x'; 4096]).unwrap();
+    let e = match Store::open(dir.path()) {
+        Ok(_) => panic!("a garbage database opened"),
+        Err(e) => e,
+    };
+    assert!(matches!(e, StoreError::Open { .. }), "{e:?}");
+    let msg = e.to_string();
+    assert!(
+        msg.contains(DB_FILE) && msg.contains("not a database"),
+        "{msg}"
+    );
+}
