@@ -249,7 +249,8 @@ fn soak_mixed_traffic_leaks_nothing_and_loses_no_feedback() {
     let tmp = tempfile::tempdir().unwrap();
     let fake = FakeOpenAi::start();
     let mut cfg = String::from(
-        "reporters = [\"videollama2\", \"videollava\"]\n\n[media]\nframes = 4\nmax_bytes = 4000000\n\n",
+        "reporters = [\"videollama2\", \"videollava\"]\n\n[server]\nidle_timeout_s = 3.0\n\n\
+         [media]\nframes = 4\nmax_bytes = 4000000\n\n",
     );
     cfg += &clip_embedder_toml(tmp.path());
     cfg += &fake.reporter_toml("videollama2", "frames");
@@ -317,6 +318,9 @@ fn soak_mixed_traffic_leaks_nothing_and_loses_no_feedback() {
     let http = reqwest::Client::builder()
         .no_proxy()
         .timeout(Duration::from_secs(60))
+        // Shorter than the server's idle timeout (3 s): the client never reuses a connection
+        // the server may be closing.
+        .pool_idle_timeout(Duration::from_secs(1))
         .build()
         .unwrap();
     let dim = rt
@@ -333,6 +337,19 @@ fn soak_mixed_traffic_leaks_nothing_and_loses_no_feedback() {
 
     let idle = snapshot(pid);
     let tally = Arc::new(Tally::default());
+    // Issue 21 row 3: a client that pipelines requests and never reads the answers. The
+    // server must drop it once its writes stall for idle_timeout_s (3 s here), during the load.
+    let mut stalled = std::net::TcpStream::connect(srv.addr.as_str()).unwrap();
+    {
+        use std::io::Write;
+        let reqs = "GET /openapi.yaml HTTP/1.1\r\nhost: x\r\n\r\n".repeat(2000);
+        // The server stops reading once its answers fill the buffers; what is left unsent
+        // does not matter.
+        stalled
+            .set_write_timeout(Some(Duration::from_millis(500)))
+            .unwrap();
+        let _ = stalled.write_all(reqs.as_bytes());
+    }
     let t0 = Instant::now();
     let until = t0 + Duration::from_secs_f64(secs);
     let warm = Duration::from_secs_f64((secs * 0.15).clamp(2.0, 10.0));
@@ -362,6 +379,40 @@ fn soak_mixed_traffic_leaks_nothing_and_loses_no_feedback() {
     });
     let wall = t0.elapsed();
     drop(http);
+    // The stalled connection was closed by the server: reading it drains what was buffered,
+    // then ends (EOF or reset) instead of receiving answers for ever.
+    {
+        use std::io::Read;
+        stalled
+            .set_read_timeout(Some(Duration::from_secs(5)))
+            .unwrap();
+        let mut buf = vec![0u8; 1 << 16];
+        let mut total = 0usize;
+        let closed = loop {
+            match stalled.read(&mut buf) {
+                Ok(0) => break true,
+                Ok(n) => total += n,
+                Err(e)
+                    if e.kind() == std::io::ErrorKind::WouldBlock
+                        || e.kind() == std::io::ErrorKind::TimedOut =>
+                {
+                    break false
+                }
+                Err(_) => break true,
+            }
+            assert!(
+                total < 1 << 30,
+                "the stalled connection keeps receiving answers"
+            );
+        };
+        assert!(
+            closed,
+            "a client that never read was still connected after the load ({total} bytes buffered)"
+        );
+        eprintln!(
+            "  stalled pipelining client: dropped by the server ({total} bytes were buffered)"
+        );
+    }
     std::thread::sleep(Duration::from_secs(1));
     let after = snapshot(pid);
     let leftover = spool_files(&data);
