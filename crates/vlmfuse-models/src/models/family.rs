@@ -3,7 +3,7 @@
 //! A family (Qwen3-VL, VideoLLaVA; VideoLLaMA2 and VLAAD are next) is one folder under
 //! [`crate::models`] with its config, vision and text towers, its processor and a `family.rs`
 //! that implements [`Family`]: load a checkpoint, turn clips into model inputs, and the
-//! [`Decoder`] steps that [`crate::generate`] drives. Adding one is that folder plus one line
+//! model whose [`Decoder`] steps [`crate::generate`] drives. Adding one is that folder plus one line
 //! in [`FAMILIES`]; nothing else matches on the architecture.
 
 use std::any::Any;
@@ -43,22 +43,27 @@ pub struct InputView {
 /// The vision tower's input of one row, on the CPU in f32, with its grid as JSON.
 pub type Pixels = (Tensor, serde_json::Value);
 
+/// The inputs of a family: what its model's [`Decoder`] takes.
+pub type Inputs<F> = <<F as Family>::Model as Decoder>::Inputs;
+
 /// One model family: a loaded checkpoint with its processor.
-pub trait Family: Decoder + Send + Sync + Sized + 'static
-where
-    Self::Inputs: Send + 'static,
-{
+pub trait Family: Send + Sync + Sized + 'static {
+    /// The model [`crate::generate`] drives (its prefill and steps).
+    type Model: Decoder<Inputs: Send + 'static>;
+
     /// `config.json`'s `model_type`.
     const MODEL_TYPE: &'static str;
+
+    fn model(&self) -> &Self::Model;
 
     /// Loads the checkpoint and its processor configs. Blocking.
     fn load(weights: &WeightSource, opts: &FamilyOptions) -> Result<Self, ModelError>;
     /// One row per clip, each with the prompt in the family's chat format. Clips are non-empty
     /// and their frames valid (checked by the caller).
-    fn prepare(&self, clips: &[&[Frame]]) -> Result<Self::Inputs, ModelError>;
-    fn view(&self, inputs: &Self::Inputs) -> InputView;
+    fn prepare(&self, clips: &[&[Frame]]) -> Result<Inputs<Self>, ModelError>;
+    fn view(&self, inputs: &Inputs<Self>) -> InputView;
     /// Row `r`'s pixel values and grid, as the vision tower takes them.
-    fn pixels(&self, inputs: &Self::Inputs, r: usize) -> Result<Option<Pixels>, ModelError>;
+    fn pixels(&self, inputs: &Inputs<Self>, r: usize) -> Result<Option<Pixels>, ModelError>;
     /// Ids that end an answer: `generation_config.json`'s, plus the chat turn end.
     fn eos_ids(&self) -> &[u32];
     /// Text of generated ids, special tokens dropped.
@@ -88,11 +93,8 @@ impl Prepared {
         self.model_type
     }
 
-    fn get<F: Family>(&self) -> Result<&F::Inputs, ModelError>
-    where
-        F::Inputs: Send + 'static,
-    {
-        self.inner.downcast_ref::<F::Inputs>().ok_or_else(|| {
+    fn get<F: Family>(&self) -> Result<&Inputs<F>, ModelError> {
+        self.inner.downcast_ref::<Inputs<F>>().ok_or_else(|| {
             ModelError::InvalidInput(format!(
                 "inputs prepared by {} given to {}",
                 self.model_type,
@@ -127,10 +129,7 @@ pub trait AnyFamily: Send + Sync {
     fn as_any(&self) -> &dyn Any;
 }
 
-impl<F: Family> AnyFamily for F
-where
-    F::Inputs: Send + 'static,
-{
+impl<F: Family> AnyFamily for F {
     fn model_type(&self) -> &'static str {
         F::MODEL_TYPE
     }
@@ -150,7 +149,7 @@ where
         let inputs = Family::prepare(self, clips)?;
         Ok(Prepared {
             model_type: F::MODEL_TYPE,
-            rows: F::rows(&inputs),
+            rows: <F::Model as Decoder>::rows(&inputs),
             inner: Box::new(inputs),
         })
     }
@@ -169,7 +168,7 @@ where
         opts: &GenerateOptions,
         cancel: Option<&AtomicBool>,
     ) -> Result<Generated, ModelError> {
-        generate(self, p.get::<F>()?, opts, cancel)
+        generate(self.model(), p.get::<F>()?, opts, cancel)
     }
 
     fn eos_ids(&self) -> &[u32] {
@@ -208,10 +207,7 @@ pub struct Registration {
 }
 
 impl Registration {
-    pub const fn of<F: Family>() -> Self
-    where
-        F::Inputs: Send + 'static,
-    {
+    pub const fn of<F: Family>() -> Self {
         Self {
             model_type: F::MODEL_TYPE,
             load: load_boxed::<F>,
@@ -222,10 +218,7 @@ impl Registration {
 fn load_boxed<F: Family>(
     weights: &WeightSource,
     opts: &FamilyOptions,
-) -> Result<Box<dyn AnyFamily>, ModelError>
-where
-    F::Inputs: Send + 'static,
-{
+) -> Result<Box<dyn AnyFamily>, ModelError> {
     Ok(Box::new(F::load(weights, opts)?))
 }
 

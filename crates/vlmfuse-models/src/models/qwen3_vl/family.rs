@@ -39,29 +39,13 @@ pub struct Qwen3VlFamily {
     prompt: String,
 }
 
-impl Decoder for Qwen3VlFamily {
-    type Inputs = Vec<Sequence>;
-    type Cache = Cache;
-
-    fn rows(inputs: &Vec<Sequence>) -> usize {
-        inputs.len()
-    }
-    fn max_len(inputs: &Vec<Sequence>) -> usize {
-        <Qwen3Vl as Decoder>::max_len(inputs)
-    }
-    fn new_cache(&self, capacity: usize) -> Cache {
-        Cache::new(capacity)
-    }
-    fn prefill(&self, inputs: &Vec<Sequence>, cache: &mut Cache) -> Result<Tensor, ModelError> {
-        self.model.prefill(inputs, cache)
-    }
-    fn step(&self, tokens: &[u32], cache: &mut Cache) -> Result<Tensor, ModelError> {
-        self.model.step(tokens, cache)
-    }
-}
-
 impl Family for Qwen3VlFamily {
+    type Model = Qwen3Vl;
     const MODEL_TYPE: &'static str = "qwen3_vl";
+
+    fn model(&self) -> &Qwen3Vl {
+        &self.model
+    }
 
     fn load(weights: &WeightSource, opts: &FamilyOptions) -> Result<Self, ModelError> {
         let model = Qwen3Vl::load(

@@ -37,29 +37,13 @@ pub struct VideoLlavaFamily {
     prompt: String,
 }
 
-impl Decoder for VideoLlavaFamily {
-    type Inputs = ModelInputs;
-    type Cache = KvCache;
-
-    fn rows(inputs: &ModelInputs) -> usize {
-        inputs.ids.batch()
-    }
-    fn max_len(inputs: &ModelInputs) -> usize {
-        inputs.ids.seq_len()
-    }
-    fn new_cache(&self, capacity: usize) -> KvCache {
-        self.model.new_cache(capacity)
-    }
-    fn prefill(&self, inputs: &ModelInputs, cache: &mut KvCache) -> Result<Tensor, ModelError> {
-        self.model.prefill(inputs, cache)
-    }
-    fn step(&self, tokens: &[u32], cache: &mut KvCache) -> Result<Tensor, ModelError> {
-        self.model.step(tokens, cache)
-    }
-}
-
 impl Family for VideoLlavaFamily {
+    type Model = VideoLlava;
     const MODEL_TYPE: &'static str = "video_llava";
+
+    fn model(&self) -> &VideoLlava {
+        &self.model
+    }
 
     fn load(weights: &WeightSource, opts: &FamilyOptions) -> Result<Self, ModelError> {
         let model = VideoLlava::load(
