@@ -13,32 +13,14 @@ use std::time::Instant;
 
 use vlmfuse_media::{sample_frames, MediaLimits, SampleOptions};
 
+use vlmfuse_testkit::clips::mp4_box;
+
 fn status_kb(field: &str) -> u64 {
     let s = std::fs::read_to_string("/proc/self/status").unwrap();
     s.lines()
         .find_map(|l| l.strip_prefix(field))
         .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
         .unwrap_or(0)
-}
-
-fn find(data: &[u8], start: usize, end: usize, path: &[&[u8; 4]]) -> Option<usize> {
-    let mut at = start;
-    while at + 8 <= end {
-        let size = u32::from_be_bytes(data[at..at + 4].try_into().unwrap()) as usize;
-        if size < 8 || at + size > end {
-            return None;
-        }
-        if &data[at + 4..at + 8] == path[0] {
-            if path.len() == 1 {
-                return Some(at);
-            }
-            if let Some(f) = find(data, at + 8, at + size, &path[1..]) {
-                return Some(f);
-            }
-        }
-        at += size;
-    }
-    None
 }
 
 fn put32(d: &mut [u8], at: usize, v: u32) {
@@ -66,10 +48,8 @@ fn make(dir: &Path) {
         &dir.join("ok.mp4"),
     );
     let data = std::fs::read(&ok).unwrap();
-    let stsz = find(
+    let stsz = mp4_box(
         &data,
-        0,
-        data.len(),
         &[b"moov", b"trak", b"mdia", b"minf", b"stbl", b"stsz"],
     )
     .unwrap();
@@ -91,7 +71,7 @@ fn make(dir: &Path) {
     let at = |d: &[u8], name: &'static [u8; 4]| {
         let mut p: Vec<&[u8; 4]> = stbl.to_vec();
         p.push(name);
-        find(d, 0, d.len(), &p).unwrap()
+        mp4_box(d, &p).unwrap()
     };
     let (stsz, stsc, stts) = (at(&d, b"stsz"), at(&d, b"stsc"), at(&d, b"stts"));
     put32(&mut d, stsz + 12, 1000);
@@ -122,7 +102,7 @@ fn make(dir: &Path) {
         &dir.join("frag.mp4"),
     );
     let mut d = std::fs::read(&frag).unwrap();
-    let trun = find(&d, 0, d.len(), &[b"moof", b"traf", b"trun"]).unwrap();
+    let trun = mp4_box(&d, &[b"moof", b"traf", b"trun"]).unwrap();
     let flags = u32::from_be_bytes(d[trun + 8..trun + 12].try_into().unwrap());
     put32(&mut d, trun + 8, flags & !0xf00);
     put32(&mut d, trun + 12, 20_000_000);

@@ -11,27 +11,7 @@ use vlmfuse_media::{probe, sample_frames, MediaError, MediaLimits, SampleOptions
 
 /// The offset of the first box along `path` (`moov`, `trak`, ...), walking from the top.
 fn find_box(data: &[u8], path: &[&[u8; 4]]) -> usize {
-    fn walk(data: &[u8], start: usize, end: usize, path: &[&[u8; 4]]) -> Option<usize> {
-        let mut at = start;
-        while at + 8 <= end {
-            let size = u32::from_be_bytes(data[at..at + 4].try_into().unwrap()) as usize;
-            let size = if size == 0 { end - at } else { size };
-            if size < 8 || at + size > end {
-                return None;
-            }
-            if &data[at + 4..at + 8] == path[0] {
-                if path.len() == 1 {
-                    return Some(at);
-                }
-                if let Some(found) = walk(data, at + 8, at + size, &path[1..]) {
-                    return Some(found);
-                }
-            }
-            at += size;
-        }
-        None
-    }
-    walk(data, 0, data.len(), path).unwrap_or_else(|| panic!("no box {path:?}"))
+    vlmfuse_testkit::clips::mp4_box(data, path).unwrap_or_else(|| panic!("no box {path:?}"))
 }
 
 fn put32(data: &mut [u8], at: usize, v: u32) {

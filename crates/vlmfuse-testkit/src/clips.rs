@@ -44,3 +44,34 @@ pub fn h264_clip(dir: &Path, name: &str, source: &str, secs: f64) -> PathBuf {
         &dir.join(name),
     )
 }
+
+/// The offset of the first ISO-BMFF box along `path` (`moov`, `trak`, ...) in an MP4's bytes,
+/// walking from the top; `None` when there is none or a size on the way is inconsistent. Tests
+/// use it to rewrite one field of a real clip (a sample count) into a hostile file.
+pub fn mp4_box(data: &[u8], path: &[&[u8; 4]]) -> Option<usize> {
+    fn walk(data: &[u8], start: usize, end: usize, path: &[&[u8; 4]]) -> Option<usize> {
+        let mut at = start;
+        while at + 8 <= end {
+            let size = u32::from_be_bytes(data[at..at + 4].try_into().ok()?) as usize;
+            // Size 0: the box runs to the end of its parent.
+            let size = if size == 0 { end - at } else { size };
+            if size < 8 || at + size > end {
+                return None;
+            }
+            if &data[at + 4..at + 8] == path[0] {
+                if path.len() == 1 {
+                    return Some(at);
+                }
+                if let Some(found) = walk(data, at + 8, at + size, &path[1..]) {
+                    return Some(found);
+                }
+            }
+            at += size;
+        }
+        None
+    }
+    if path.is_empty() {
+        return None;
+    }
+    walk(data, 0, data.len(), path)
+}

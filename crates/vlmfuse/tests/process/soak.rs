@@ -84,27 +84,8 @@ struct Uploads {
 /// `data` with the `stsz` box of its first track declaring `count` samples of one size: a few
 /// bytes that made FFmpeg allocate per declared sample.
 fn declare_samples(mut data: Vec<u8>, count: u32) -> Vec<u8> {
-    fn find(data: &[u8], start: usize, end: usize, path: &[&[u8; 4]]) -> Option<usize> {
-        let mut at = start;
-        while at + 8 <= end {
-            let size = u32::from_be_bytes(data[at..at + 4].try_into().unwrap()) as usize;
-            if size < 8 || at + size > end {
-                return None;
-            }
-            if &data[at + 4..at + 8] == path[0] {
-                if path.len() == 1 {
-                    return Some(at);
-                }
-                if let Some(f) = find(data, at + 8, at + size, &path[1..]) {
-                    return Some(f);
-                }
-            }
-            at += size;
-        }
-        None
-    }
     let path: [&[u8; 4]; 6] = [b"moov", b"trak", b"mdia", b"minf", b"stbl", b"stsz"];
-    let at = find(&data, 0, data.len(), &path).expect("the clip has an stsz box");
+    let at = vlmfuse_testkit::clips::mp4_box(&data, &path).expect("the clip has an stsz box");
     // version/flags (4), sample_size (4), sample_count (4).
     data[at + 12..at + 16].copy_from_slice(&100u32.to_be_bytes());
     data[at + 16..at + 20].copy_from_slice(&count.to_be_bytes());
