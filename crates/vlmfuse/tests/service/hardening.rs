@@ -43,26 +43,9 @@ async fn a_huge_multipart_preamble_is_refused_at_once() {
     assert_eq!(r.status, 200, "{}", r.json());
 
     let chunk = vec![b'x'; 64 * 1024];
-    let mut parts: Vec<Result<Vec<u8>, std::io::Error>> =
-        (0..256).map(|_| Ok(chunk.clone())).collect();
-    parts.push(Ok(multipart(&[("video", "a.mp4", &data)])));
-    let body = Body::from_stream(futures::stream::iter(parts));
-    let req = Request::builder()
-        .method("POST")
-        .uri("/v1/infer")
-        .header("content-type", content_type())
-        .body(body)
-        .unwrap();
-    let t = Instant::now();
-    let resp = srv.router().oneshot(req).await.unwrap();
-    let status = resp.status().as_u16();
-    let v: Value = serde_json::from_slice(
-        &axum::body::to_bytes(resp.into_body(), usize::MAX)
-            .await
-            .unwrap(),
-    )
-    .unwrap();
-    let took = t.elapsed();
+    let mut parts: Vec<Vec<u8>> = (0..256).map(|_| chunk.clone()).collect();
+    parts.push(multipart(&[("video", "a.mp4", &data)]));
+    let (status, v, took) = post_stream(&srv, &content_type(), parts).await;
     assert_eq!(status, 400, "{v}");
     assert_eq!(v["kind"], "multipart_preamble_too_long", "{v}");
     assert!(
@@ -85,11 +68,21 @@ async fn post_stream(
     parts: Vec<Vec<u8>>,
 ) -> (u16, Value, Duration) {
     let parts: Vec<Result<Vec<u8>, std::io::Error>> = parts.into_iter().map(Ok).collect();
+    post_body(
+        srv,
+        content_type,
+        Body::from_stream(futures::stream::iter(parts)),
+    )
+    .await
+}
+
+/// Sends `body` to `/v1/infer` as it streams; the status, the JSON answer and the time taken.
+async fn post_body(srv: &TestApp, content_type: &str, body: Body) -> (u16, Value, Duration) {
     let req = Request::builder()
         .method("POST")
         .uri("/v1/infer")
         .header("content-type", content_type)
-        .body(Body::from_stream(futures::stream::iter(parts)))
+        .body(body)
         .unwrap();
     let t = Instant::now();
     let resp = srv.router().oneshot(req).await.unwrap();
@@ -193,22 +186,7 @@ async fn a_trickling_upload_is_refused_at_the_minimum_rate() {
             (i < 100).then_some((Ok(vec![b'x']), i + 1))
         }),
     );
-    let req = Request::builder()
-        .method("POST")
-        .uri("/v1/infer")
-        .header("content-type", content_type())
-        .body(Body::from_stream(body))
-        .unwrap();
-    let t = Instant::now();
-    let resp = srv.router().oneshot(req).await.unwrap();
-    let status = resp.status().as_u16();
-    let v: Value = serde_json::from_slice(
-        &axum::body::to_bytes(resp.into_body(), usize::MAX)
-            .await
-            .unwrap(),
-    )
-    .unwrap();
-    let took = t.elapsed();
+    let (status, v, took) = post_body(&srv, &content_type(), Body::from_stream(body)).await;
     assert_eq!(status, 408, "{v}");
     assert_eq!(v["kind"], "upload_too_slow", "{v}");
     assert!(took < Duration::from_secs(2), "took {took:?}");
