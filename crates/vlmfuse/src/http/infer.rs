@@ -16,20 +16,12 @@ use tokio::io::AsyncWriteExt;
 use vlmfuse_media::MediaError;
 
 /// `POST /v1/infer`. A refusal may come before the body was read to its end (a long preamble,
-/// a clip over the size limit, a bad part): the answer then says `Connection: close`, since
-/// the unread rest of the body would otherwise be taken for the next request, and a client
-/// reusing the connection would fail its next request.
+/// a clip over the size limit, a bad part); the router's outermost layer then adds
+/// `Connection: close`, as for every refusal of a request with a body.
 pub async fn infer(st: State<AppState>, req: Request) -> Response {
     match infer_inner(st, req).await {
         Ok(r) => r,
-        Err(e) => {
-            let mut resp = e.into_response();
-            resp.headers_mut().insert(
-                header::CONNECTION,
-                axum::http::HeaderValue::from_static("close"),
-            );
-            resp
-        }
+        Err(e) => e.into_response(),
     }
 }
 
