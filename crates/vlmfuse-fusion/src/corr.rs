@@ -6,7 +6,7 @@
 
 use std::collections::VecDeque;
 
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone, Default, serde::Serialize, serde::Deserialize)]
 struct PairWindow {
     /// One code per label per round: `e_i + 2 * e_j`.
     rounds: VecDeque<Vec<u8>>,
@@ -14,7 +14,7 @@ struct PairWindow {
     counts: Vec<[u32; 4]>,
 }
 
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone, Default, serde::Serialize, serde::Deserialize)]
 pub struct CorrWindow {
     n: usize,
     l: usize,

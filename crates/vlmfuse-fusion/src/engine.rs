@@ -131,7 +131,7 @@ pub struct FeedbackOutcome {
 }
 
 /// Per-reporter statistics kept across rounds (PAPER-METHOD.md §4).
-#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, serde::Deserialize)]
 pub struct ReporterStats {
     /// Labelled rounds in which the reporter was present.
     pub rounds_credited: u64,
@@ -141,11 +141,23 @@ pub struct ReporterStats {
     pub utility: f64,
 }
 
-#[derive(Debug, Clone)]
+/// The version of the engine's serialised layout (its `serde` form, field by field, down to
+/// the methods' state). A stored copy written under another layout is not read back: the store
+/// then replays the events instead. Bump it with any change to a field of the engine or of the
+/// state it owns; the `layout_is_pinned` test fails until it is bumped and its digest updated.
+pub const ENGINE_LAYOUT: u32 = 1;
+
+/// The engine: shared state plus the configured method's own. Serialisable so that the store
+/// can keep a snapshot and replay only the events after it; a snapshot read back is the very
+/// engine that was written (every `f64` by its bits), so snapshot plus tail equals a full replay.
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct Engine {
+    #[serde(with = "crate::sorted_map::as_json")]
     cfg: FusionConfig,
+    #[serde(with = "crate::sorted_map::as_json")]
     ontology: Ontology,
     reporters: Vec<String>,
+    #[serde(with = "crate::sorted_map")]
     index: HashMap<String, usize>,
     /// The context dimension in force: configured, or fixed by the first stored round.
     dim: Option<usize>,
@@ -223,6 +235,16 @@ impl Engine {
 
     pub fn config(&self) -> &FusionConfig {
         &self.cfg
+    }
+
+    /// Whether `other` was built from the same configuration, ontology and reporters. A stored
+    /// copy of one engine ([`ENGINE_LAYOUT`], the store's snapshots) may stand in for a replay
+    /// into the other only then: any difference (a changed `[fusion]` setting, a reporter added)
+    /// would make the copy disagree with what the replay gives.
+    pub fn same_setup(&self, other: &Engine) -> bool {
+        self.cfg == other.cfg
+            && self.ontology == other.ontology
+            && self.reporters == other.reporters
     }
     /// The fusion method this engine runs.
     pub fn method(&self) -> Method {

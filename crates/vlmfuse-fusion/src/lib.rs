@@ -17,12 +17,13 @@ pub mod ontology;
 pub mod replay;
 pub mod reputation;
 pub mod signals;
+mod sorted_map;
 pub mod threshold;
 
 pub use config::{Ablations, FusionConfig, Method, ThresholdMode};
 pub use engine::{
     Engine, FeedbackOutcome, Inference, LabelExplanation, LabelledRound, ReporterStats, Round,
-    RoundRecord,
+    RoundRecord, ENGINE_LAYOUT,
 };
 pub use error::FusionError;
 pub use method::adaptive::{AdaptiveConfig, Guardrail, Reputation, Scan, SoftTruth, WeightNorm};

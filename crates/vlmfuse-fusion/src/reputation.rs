@@ -80,7 +80,7 @@ pub fn keep_absent(w: &[f64], new: Vec<f64>, coalition: &[usize]) -> Vec<f64> {
 }
 
 /// What the adaptive reputation update remembers of past credits.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct CreditMemory {
     /// Decayed sum of the per-round mean `|phi|` and its decayed count: the credit scale.
     scale_num: f64,

@@ -11,7 +11,7 @@
 use crate::config::{FusionConfig, ThresholdMode};
 use std::collections::VecDeque;
 
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct ThresholdFitter {
     mode: ThresholdMode,
     grid: Vec<f64>,

@@ -57,6 +57,10 @@ pub enum StoreError {
     Mismatch(String),
     #[error("database is inconsistent: {0}")]
     Corrupt(String),
+    /// Writing an engine snapshot failed (reading one never fails a start: an unusable
+    /// snapshot is skipped with a warning).
+    #[error("snapshot: {0}")]
+    Snapshot(String),
     #[error("rebuilding the engine failed: {0}")]
     Fusion(#[from] FusionError),
     /// Another [`Store`] (another server, or another open in this process) holds the data
@@ -222,6 +226,11 @@ pub struct LoadReport {
     /// The fusion method the database was written under before this start, when it differs
     /// from the engine's: every outcome was then recomputed under the engine's method.
     pub migrated_from: Option<String>,
+    /// The snapshot the engine was loaded from (then only the events after it were replayed);
+    /// `None`: every event was replayed.
+    pub snapshot: Option<snapshot::Used>,
+    /// Snapshots found but not used, with the reason (each also logged as a warning).
+    pub skipped_snapshots: Vec<(PathBuf, String)>,
 }
 
 /// The public id of a round: its creation order, zero-padded so ids sort like rounds.
@@ -283,6 +292,8 @@ fn round_from(row: &rusqlite::Row<'_>, at: usize) -> Result<Round, StoreError> {
 #[derive(Default)]
 struct Replayed {
     labelled: u64,
+    /// Rounds the replay fed to the engine.
+    rounds_fed: u64,
     inferences: Vec<(u64, Inference)>,
     outcomes: Vec<(u64, FeedbackOutcome)>,
 }
@@ -330,6 +341,7 @@ impl RoundFeed<'_> {
             if self.fresh {
                 out.inferences.push((seq, inf));
             }
+            out.rounds_fed += 1;
             self.fed = seq + 1;
         }
         Ok(())
@@ -661,7 +673,24 @@ impl Store {
     /// are the state: the replay infers each round again and recomputes each credit, and the
     /// outcomes, the rounds' stored inferences and the state row are rewritten in one
     /// transaction, so the database then reads as if it had been written under the new method.
+    ///
+    /// The latest usable snapshot ([`snapshot`]) stands in for the events it covers, so only
+    /// the tail is replayed; an unusable one is skipped with a warning, and if the engine the
+    /// tail leads to disagrees with the state row, the full replay runs after all.
     pub fn load_engine(&mut self, engine: &mut Engine) -> Result<LoadReport, StoreError> {
+        self.load_engine_from(engine, true)
+    }
+
+    /// [`Store::load_engine`] without snapshots: every event is replayed.
+    pub fn load_engine_full(&mut self, engine: &mut Engine) -> Result<LoadReport, StoreError> {
+        self.load_engine_from(engine, false)
+    }
+
+    fn load_engine_from(
+        &mut self,
+        engine: &mut Engine,
+        snapshots: bool,
+    ) -> Result<LoadReport, StoreError> {
         if engine.labelled() != 0 {
             return Err(StoreError::Corrupt(
                 "load_engine needs a fresh engine".into(),
@@ -679,7 +708,46 @@ impl Store {
                     Ok((r.get(0)?, r.get(1)?))
                 })?;
         let next_seq = max_seq.map(|m| m as u64 + 1).unwrap_or(0);
-        let replayed = self.replay_into(engine, migrate)?;
+        let mut skipped = Vec::new();
+        if snapshots && !migrate {
+            let fresh = engine.clone();
+            if let Some((snap, anchor, path)) =
+                self.usable_snapshot(&fresh, next_seq, &mut skipped)?
+            {
+                *engine = snap;
+                let tail = self
+                    .replay_into(engine, false, Some(&anchor))
+                    .and_then(|r| self.check_state(engine, r.labelled).map(|()| r));
+                match tail {
+                    Ok(r) => {
+                        if stored.is_none() {
+                            self.set_method(&method)?;
+                        }
+                        return Ok(LoadReport {
+                            rounds: rounds as u64,
+                            labelled: r.labelled,
+                            next_seq,
+                            migrated_from: None,
+                            snapshot: Some(snapshot::Used {
+                                path,
+                                tail_rounds: r.rounds_fed,
+                                tail_feedback: r.labelled - anchor.labelled,
+                                anchor,
+                            }),
+                            skipped_snapshots: skipped,
+                        });
+                    }
+                    Err(e) => {
+                        let why =
+                            format!("the events after it do not lead to the stored state ({e})");
+                        tracing::warn!(path = %path.display(), "snapshot not used: {why}; replaying every event");
+                        skipped.push((path, why));
+                        *engine = fresh;
+                    }
+                }
+            }
+        }
+        let replayed = self.replay_into(engine, migrate, None)?;
         if migrate {
             self.rewrite(&method, engine, &replayed)?;
         } else {
@@ -693,35 +761,192 @@ impl Store {
             labelled: replayed.labelled,
             next_seq,
             migrated_from: if migrate { stored } else { None },
+            snapshot: None,
+            skipped_snapshots: skipped,
         })
+    }
+
+    /// The data directory (the database's and the snapshots' parent).
+    pub fn dir(&self) -> &Path {
+        self.path.parent().unwrap_or(Path::new("."))
+    }
+
+    /// Where the engine stands in the stored history now: after every stored round and
+    /// feedback (the single writer calls this between events, where that is the engine's
+    /// state), with the anchors a later [`Store::load_engine`] checks a snapshot against.
+    pub fn anchor(&self) -> Result<snapshot::Anchor, StoreError> {
+        let last_round: Option<(i64, i64)> = self
+            .conn
+            .query_row(
+                "SELECT seq, created_ms FROM rounds ORDER BY seq DESC LIMIT 1",
+                [],
+                |r| Ok((r.get(0)?, r.get(1)?)),
+            )
+            .optional()?;
+        let last_feedback: Option<(i64, i64, i64)> = self
+            .conn
+            .query_row(
+                "SELECT labelled_order, seq, created_ms FROM feedback
+                 ORDER BY labelled_order DESC LIMIT 1",
+                [],
+                |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
+            )
+            .optional()?;
+        Ok(snapshot::Anchor {
+            rounds: last_round.map_or(0, |(s, _)| s as u64 + 1),
+            labelled: last_feedback.map_or(0, |(o, _, _)| o as u64 + 1),
+            last_round: last_round.map(|(s, ms)| (s as u64, ms)),
+            last_feedback: last_feedback.map(|(_, s, ms)| (s as u64, ms)),
+        })
+    }
+
+    /// Why the snapshot's anchor does not describe a point of this database's history, if it
+    /// does not.
+    fn anchor_mismatch(
+        &self,
+        a: &snapshot::Anchor,
+        next_seq: u64,
+    ) -> Result<Option<String>, StoreError> {
+        if a.rounds > next_seq {
+            return Ok(Some(format!(
+                "it covers {} rounds but the database holds {next_seq}",
+                a.rounds
+            )));
+        }
+        let round_at = |seq: u64| -> Result<Option<i64>, StoreError> {
+            Ok(self
+                .conn
+                .query_row(
+                    "SELECT created_ms FROM rounds WHERE seq = ?1",
+                    [seq as i64],
+                    |r| r.get(0),
+                )
+                .optional()?)
+        };
+        match (a.rounds, a.last_round) {
+            (0, None) => {}
+            (r, Some((seq, ms))) if seq + 1 == r => {
+                if round_at(seq)? != Some(ms) {
+                    return Ok(Some(format!(
+                        "its last round {seq} is not this database's (another history)"
+                    )));
+                }
+            }
+            _ => return Ok(Some("its round anchor is malformed".into())),
+        }
+        let fb_at = |order: u64| -> Result<Option<(i64, i64)>, StoreError> {
+            Ok(self
+                .conn
+                .query_row(
+                    "SELECT seq, created_ms FROM feedback WHERE labelled_order = ?1",
+                    [order as i64],
+                    |r| Ok((r.get(0)?, r.get(1)?)),
+                )
+                .optional()?)
+        };
+        match (a.labelled, a.last_feedback) {
+            (0, None) => {}
+            (f, Some((seq, ms))) if f > 0 => match fb_at(f - 1)? {
+                Some((s, m)) if s as u64 == seq && m == ms => {}
+                Some(_) => {
+                    return Ok(Some(format!(
+                        "its feedback {f} is not this database's (another history)"
+                    )))
+                }
+                None => {
+                    return Ok(Some(format!(
+                        "it covers {f} feedbacks but the database holds fewer"
+                    )))
+                }
+            },
+            _ => return Ok(Some("its feedback anchor is malformed".into())),
+        }
+        Ok(None)
+    }
+
+    /// The newest snapshot that can stand in for its events, as an engine built like `fresh`
+    /// (fixed to the database's dimension), with its anchor and path. Unusable ones go to
+    /// `skipped` with the reason and a warning.
+    fn usable_snapshot(
+        &self,
+        fresh: &Engine,
+        next_seq: u64,
+        skipped: &mut Vec<(PathBuf, String)>,
+    ) -> Result<Option<(Engine, snapshot::Anchor, PathBuf)>, StoreError> {
+        let dir = snapshot::dir_of(self.dir());
+        snapshot::remove_leftovers(&dir);
+        for path in snapshot::list(&dir) {
+            let why = match snapshot::read(&path) {
+                Err(why) => why,
+                Ok((h, _)) if h.method != fresh.method().name() => format!(
+                    "written under method {:?}, the engine runs {:?}",
+                    h.method,
+                    fresh.method().name()
+                ),
+                Ok((_, snap)) if !snap.same_setup(fresh) => {
+                    "written under another [fusion] configuration, ontology or reporter list".into()
+                }
+                Ok((_, snap))
+                    if fresh.dim().is_some()
+                        && snap.dim().is_some()
+                        && snap.dim() != fresh.dim() =>
+                {
+                    "written for another context dimension".into()
+                }
+                Ok((h, mut snap)) => match self.anchor_mismatch(&h.anchor, next_seq)? {
+                    Some(why) => why,
+                    None => {
+                        if let (Some(d), None) = (fresh.dim(), snap.dim()) {
+                            snap.fix_dim(d)?;
+                        }
+                        return Ok(Some((snap, h.anchor, path)));
+                    }
+                },
+            };
+            tracing::warn!(path = %path.display(), "snapshot not used: {why}");
+            skipped.push((path, why));
+        }
+        Ok(None)
     }
 
     /// Reads the stored events in the writer's order and feeds them to `engine`. With `fresh`
     /// the stored inferences and outcomes are left unread (the replay computes new ones, which
     /// are returned); without it, the rounds are read only if the engine learns from them.
-    fn replay_into(&self, engine: &mut Engine, fresh: bool) -> Result<Replayed, StoreError> {
-        let mut out = Replayed::default();
+    ///
+    /// With `from` (a snapshot's anchor, the engine already holding its events) only the
+    /// events after it are read: rounds from `from.rounds`, feedback from `from.labelled`.
+    fn replay_into(
+        &self,
+        engine: &mut Engine,
+        fresh: bool,
+        from: Option<&snapshot::Anchor>,
+    ) -> Result<Replayed, StoreError> {
+        let (first_round, first_fb) = from.map_or((0, 0), |a| (a.rounds, a.labelled));
+        let mut out = Replayed {
+            labelled: first_fb,
+            ..Replayed::default()
+        };
         let mut round_stmt = self.conn.prepare(
             "SELECT r.seq, r.context, r.present, r.reports, d.inference,
                     EXISTS (SELECT 1 FROM feedback f WHERE f.seq = r.seq)
-             FROM rounds r JOIN round_detail d ON d.seq = r.seq ORDER BY r.seq",
+             FROM rounds r JOIN round_detail d ON d.seq = r.seq WHERE r.seq >= ?1 ORDER BY r.seq",
         )?;
         let mut rounds = RoundFeed {
             rows: if fresh || engine.observes() {
-                Some(round_stmt.query([])?)
+                Some(round_stmt.query([first_round as i64])?)
             } else {
                 None
             },
-            fed: 0,
+            fed: first_round,
             fresh,
         };
         let mut fb_stmt = self.conn.prepare(
             "SELECT r.seq, r.context, r.present, r.reports, r.q, f.truth, f.outcome,
                     f.rounds_before
              FROM feedback f JOIN rounds r ON r.seq = f.seq
-             ORDER BY f.labelled_order",
+             WHERE f.labelled_order >= ?1 ORDER BY f.labelled_order",
         )?;
-        let mut fb_rows = fb_stmt.query([])?;
+        let mut fb_rows = fb_stmt.query([first_fb as i64])?;
         let mut replay = Replay::new(engine);
         while let Some(row) = fb_rows.next()? {
             let seq = row.get::<_, i64>(0)? as u64;
@@ -1099,6 +1324,8 @@ impl Store {
         Ok((r as u64, f as u64))
     }
 }
+
+pub mod snapshot;
 
 #[cfg(test)]
 mod tests;

@@ -537,3 +537,232 @@ fn an_unusable_database_file_is_named() {
         "{msg}"
     );
 }
+
+/// The engine as bytes: equal bytes are the same engine, every float by its bits.
+fn bytes(e: &Engine) -> Vec<u8> {
+    postcard::to_allocvec(e).unwrap()
+}
+
+/// A data directory with `upto` rounds played and a snapshot taken after `at` of them.
+fn with_snapshot(
+    method: vlmfuse_fusion::Method,
+    at: u64,
+    upto: u64,
+) -> (tempfile::TempDir, Engine) {
+    let dir = tempfile::tempdir().unwrap();
+    let mut live = engine_with(method);
+    let mut store = Store::open(dir.path()).unwrap();
+    store.check_identity(&identity(&live)).unwrap();
+    store.load_engine(&mut live).unwrap();
+    play(&mut live, &mut store, 0, at);
+    let anchor = store.anchor().unwrap();
+    assert_eq!((anchor.rounds, anchor.labelled), (at, live.labelled()));
+    snapshot::write(&snapshot::dir_of(dir.path()), &live, &anchor, 2).unwrap();
+    play(&mut live, &mut store, at, upto);
+    (dir, live)
+}
+
+/// Loads the directory twice, from its snapshot and by the full replay.
+fn load_both(dir: &Path, method: vlmfuse_fusion::Method) -> (Engine, LoadReport, Engine) {
+    let mut store = Store::open(dir).unwrap();
+    let mut snap = engine_with(method);
+    let rep = store.load_engine(&mut snap).unwrap();
+    let mut full = engine_with(method);
+    let full_rep = store.load_engine_full(&mut full).unwrap();
+    assert!(full_rep.snapshot.is_none());
+    assert_eq!(
+        (rep.rounds, rep.labelled),
+        (full_rep.rounds, full_rep.labelled)
+    );
+    (snap, rep, full)
+}
+
+#[test]
+fn a_snapshot_plus_its_tail_is_the_full_replay_bit_for_bit() {
+    use vlmfuse_fusion::Method::{Adaptive, Paper};
+    for method in [Paper, Adaptive] {
+        let (dir, live) = with_snapshot(method, 80, 130);
+        let (snap, rep, full) = load_both(dir.path(), method);
+        let used = rep.snapshot.as_ref().expect("the snapshot is used");
+        assert_eq!((used.anchor.rounds, used.anchor.labelled), (80, 64));
+        // Under `paper` only feedback is state; under `adaptive` every round after it is too.
+        let tail_rounds = if method == Paper { 0 } else { 50 };
+        assert_eq!((used.tail_rounds, used.tail_feedback), (tail_rounds, 40));
+        assert!(rep.skipped_snapshots.is_empty());
+        assert_eq!(
+            bytes(&snap),
+            bytes(&full),
+            "{method:?}: snapshot + tail != full replay"
+        );
+        assert_eq!(
+            bytes(&snap),
+            bytes(&live),
+            "{method:?}: != the engine that lived it"
+        );
+        // And both go on alike.
+        let probe = live.parse(&record(999)).unwrap().0;
+        assert_eq!(snap.infer(&probe), full.infer(&probe));
+    }
+}
+
+#[test]
+fn a_snapshot_of_the_whole_history_leaves_no_tail() {
+    let (dir, live) = with_snapshot(vlmfuse_fusion::Method::Adaptive, 60, 60);
+    let (snap, rep, full) = load_both(dir.path(), vlmfuse_fusion::Method::Adaptive);
+    let used = rep.snapshot.unwrap();
+    assert_eq!((used.tail_rounds, used.tail_feedback), (0, 0));
+    assert_eq!(bytes(&snap), bytes(&full));
+    assert_eq!(bytes(&snap), bytes(&live));
+}
+
+/// Each way a snapshot can be wrong is caught before it is used, and the start falls back to
+/// the full replay: the engine is the same either way.
+#[test]
+fn an_unusable_snapshot_is_skipped_with_its_reason() {
+    use vlmfuse_fusion::Method::{Adaptive, Paper};
+    type Spoil = fn(&Path, &Path);
+    let cases: [(&str, Spoil); 6] = [
+        ("checksum", |p, _| {
+            let mut b = std::fs::read(p).unwrap();
+            let mid = b.len() / 2;
+            b[mid] ^= 0x40;
+            std::fs::write(p, b).unwrap();
+        }),
+        ("bad magic or too short", |p, _| {
+            std::fs::write(p, b"VLMF").unwrap();
+        }),
+        ("checksum", |p, _| {
+            let b = std::fs::read(p).unwrap();
+            std::fs::write(p, &b[..b.len() - 9]).unwrap();
+        }),
+        ("method", |p, dir| {
+            // A paper engine's snapshot at the same point of an identical history.
+            std::fs::remove_file(p).unwrap();
+            file_as_snapshot(dir, engine_with(Paper), 0, 80);
+        }),
+        ("configuration", |p, dir| {
+            let e = Engine::new(
+                FusionConfig {
+                    method: Adaptive,
+                    eta: 0.3,
+                    ..FusionConfig::default()
+                },
+                Ontology::paper(),
+                vec!["a".into(), "b".into(), "c".into()],
+            )
+            .unwrap();
+            std::fs::remove_file(p).unwrap();
+            file_as_snapshot(dir, e, 0, 80);
+        }),
+        ("another history", |_, dir| {
+            let c = Connection::open(dir.join(DB_FILE)).unwrap();
+            c.execute("UPDATE rounds SET created_ms = 7 WHERE seq = 79", [])
+                .unwrap();
+        }),
+    ];
+    for (want, spoil) in cases {
+        let (dir, live) = with_snapshot(Adaptive, 80, 100);
+        let snap_dir = snapshot::dir_of(dir.path());
+        let path = snapshot::list(&snap_dir).remove(0);
+        spoil(&path, dir.path());
+        let (snap, rep, full) = load_both(dir.path(), Adaptive);
+        assert!(rep.snapshot.is_none(), "{want}: a spoilt snapshot was used");
+        let reasons: Vec<&String> = rep.skipped_snapshots.iter().map(|(_, w)| w).collect();
+        assert!(
+            reasons.iter().any(|w| w.contains(want)),
+            "{want}: skipped for {reasons:?}"
+        );
+        assert_eq!(bytes(&snap), bytes(&full));
+        assert_eq!(bytes(&snap), bytes(&live));
+    }
+}
+
+/// Where `play`'s history in `dir` stands after 80 rounds (`play` labels every round but each
+/// fifth and stamps rounds `created_ms = 0`, so only the feedback's time is `dir`'s own).
+fn at_80(dir: &Path) -> snapshot::Anchor {
+    let store = Store::open_read_only(dir).unwrap();
+    let ms: i64 = store
+        .conn
+        .query_row(
+            "SELECT created_ms FROM feedback WHERE labelled_order = 63",
+            [],
+            |r| r.get(0),
+        )
+        .unwrap();
+    snapshot::Anchor {
+        rounds: 80,
+        labelled: 64,
+        last_round: Some((79, 0)),
+        last_feedback: Some((78, ms)),
+    }
+}
+
+/// Plays `from..to` into `e` against a scratch store and files it as `dir`'s snapshot after
+/// 80 rounds.
+fn file_as_snapshot(dir: &Path, mut e: Engine, from: u64, to: u64) {
+    let scratch = tempfile::tempdir().unwrap();
+    play(&mut e, &mut Store::open(scratch.path()).unwrap(), from, to);
+    let a = at_80(dir);
+    assert_eq!(e.labelled(), a.labelled);
+    snapshot::write(&snapshot::dir_of(dir), &e, &a, 2).unwrap();
+}
+
+/// A snapshot that passes every check but holds another engine (here: one that lived other
+/// rounds) disagrees with the stored state row: it is dropped for the full replay. (The state
+/// row holds the reputations after the last feedback, which a replayed stored outcome restores
+/// exactly, so the check bites when the snapshot is the last word on them: no feedback after it.)
+#[test]
+fn a_snapshot_that_leads_elsewhere_falls_back_to_the_full_replay() {
+    use vlmfuse_fusion::Method::Adaptive;
+    let (dir, live) = with_snapshot(Adaptive, 80, 80);
+    let real = snapshot::list(&snapshot::dir_of(dir.path())).remove(0);
+    assert_eq!(snapshot::read(&real).unwrap().0.anchor, at_80(dir.path()));
+    std::fs::remove_file(&real).unwrap();
+    file_as_snapshot(dir.path(), engine_with(Adaptive), 1000, 1080);
+    let (snap, rep, full) = load_both(dir.path(), Adaptive);
+    assert!(rep.snapshot.is_none(), "the wrong engine was used");
+    assert!(
+        rep.skipped_snapshots
+            .iter()
+            .any(|(_, w)| w.contains("do not lead to the stored state")),
+        "{:?}",
+        rep.skipped_snapshots
+    );
+    assert_eq!(bytes(&snap), bytes(&full));
+    assert_eq!(bytes(&snap), bytes(&live));
+}
+
+#[test]
+fn snapshots_are_kept_newest_first_and_pruned() {
+    use vlmfuse_fusion::Method::Paper;
+    let dir = tempfile::tempdir().unwrap();
+    let mut live = engine_with(Paper);
+    let mut store = Store::open(dir.path()).unwrap();
+    let sd = snapshot::dir_of(dir.path());
+    for k in 1..=4u64 {
+        play(&mut live, &mut store, (k - 1) * 10, k * 10);
+        snapshot::write(&sd, &live, &store.anchor().unwrap(), 2).unwrap();
+    }
+    std::fs::write(sd.join(".tmp-1-snapshot-x.bin"), b"torn").unwrap();
+    let left: Vec<String> = snapshot::list(&sd)
+        .iter()
+        .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(
+        left,
+        [
+            "snapshot-000000000032-000000000040.bin",
+            "snapshot-000000000024-000000000030.bin"
+        ]
+    );
+    drop(store);
+    let rep = Store::open(dir.path())
+        .unwrap()
+        .load_engine(&mut engine_with(Paper))
+        .unwrap();
+    assert_eq!(rep.snapshot.unwrap().anchor.rounds, 40);
+    assert!(
+        !sd.join(".tmp-1-snapshot-x.bin").exists(),
+        "a torn write is removed"
+    );
+}

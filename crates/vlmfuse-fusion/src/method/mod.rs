@@ -33,7 +33,7 @@ pub struct Ctx<'a> {
 }
 
 /// The method an engine runs, with its state.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub enum MethodState {
     Paper(Box<Paper>),
     Adaptive(Box<Adaptive>),

@@ -9,7 +9,7 @@ use crate::engine::{Inference, LabelledRound, Round};
 use crate::signals::Signals;
 use crate::threshold::ThresholdFitter;
 
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct Paper {
     bank: Bank,
     corr: CorrWindow,

@@ -212,6 +212,18 @@ impl Config {
         )?;
         seconds("server.idle_timeout_s", self.server.idle_timeout_s)?;
         seconds("server.shutdown_timeout_s", self.server.shutdown_timeout_s)?;
+        ensure!(
+            self.server.snapshot_interval_s == 0.0
+                || (self.server.snapshot_interval_s.is_finite()
+                    && self.server.snapshot_interval_s > 0.0
+                    && self.server.snapshot_interval_s <= MAX_SECONDS),
+            "server.snapshot_interval_s must be 0 (off) or a number of seconds in (0, {MAX_SECONDS}], got {}",
+            self.server.snapshot_interval_s
+        );
+        ensure!(
+            self.server.snapshot_keep >= 1,
+            "server.snapshot_keep must be at least 1"
+        );
         seconds("media.upload_grace_s", self.media.upload_grace_s)?;
         ensure!(
             self.server.max_connections > 0

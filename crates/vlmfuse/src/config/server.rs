@@ -50,6 +50,20 @@ pub struct ServerConfig {
     /// either way (the writer drains its queue after the connections are gone).
     #[arg(long, env = "VLMFUSE_SHUTDOWN_TIMEOUT_S", required = false)]
     pub shutdown_timeout_s: f64,
+    /// Events (stored rounds plus feedbacks) after which the writer snapshots the engine, so
+    /// that a restart replays at most about this many events instead of the whole history.
+    /// 0: never by count. Written in the background from a copy; a snapshot is only a cache,
+    /// the database stays the truth.
+    #[arg(long, env = "VLMFUSE_SNAPSHOT_EVERY", required = false)]
+    pub snapshot_every: u64,
+    /// Seconds after which any new events are snapshotted even below `snapshot_every` (and on
+    /// a clean shutdown), so a quiet service also restarts fast. 0: never by time.
+    #[arg(long, env = "VLMFUSE_SNAPSHOT_INTERVAL_S", required = false)]
+    pub snapshot_interval_s: f64,
+    /// Snapshots kept (the newest; at least 1). Two leave one to fall back on if the newest is
+    /// damaged.
+    #[arg(long, env = "VLMFUSE_SNAPSHOT_KEEP", required = false)]
+    pub snapshot_keep: usize,
 }
 
 impl Default for ServerConfig {
@@ -64,6 +78,9 @@ impl Default for ServerConfig {
             max_connections: 1024,
             min_free_bytes: 64 * 1024 * 1024,
             shutdown_timeout_s: 10.0,
+            snapshot_every: 10_000,
+            snapshot_interval_s: 600.0,
+            snapshot_keep: 2,
         }
     }
 }

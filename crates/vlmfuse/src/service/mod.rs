@@ -211,6 +211,16 @@ impl Service {
                  inferred again and every credit recomputed under the configured one"
             );
         }
+        if let Some(u) = &loaded.snapshot {
+            tracing::info!(
+                path = %u.path.display(),
+                rounds = u.anchor.rounds,
+                labelled = u.anchor.labelled,
+                tail_rounds = u.tail_rounds,
+                tail_feedback = u.tail_feedback,
+                "engine loaded from a snapshot; replayed only the events after it"
+            );
+        }
         tracing::info!(
             method = engine.method().name(),
             rounds = loaded.rounds,
@@ -265,6 +275,12 @@ impl Service {
             shared.clone(),
             metrics.clone(),
             Duration::from_secs_f64(cfg.limits.idempotency_ttl_s),
+            writer::SnapshotPolicy {
+                every: cfg.server.snapshot_every,
+                interval: (cfg.server.snapshot_interval_s > 0.0)
+                    .then(|| Duration::from_secs_f64(cfg.server.snapshot_interval_s)),
+                keep: cfg.server.snapshot_keep,
+            },
         )
         .context("writer thread")?;
         let pipeline = Arc::new(pipeline);

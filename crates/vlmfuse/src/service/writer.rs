@@ -162,11 +162,134 @@ impl Keys {
     }
 }
 
+/// When the writer snapshots the engine (`[server] snapshot_*`).
+#[derive(Debug, Clone, Copy)]
+pub struct SnapshotPolicy {
+    /// Events after which a snapshot is due; 0: never by count.
+    pub every: u64,
+    /// Time after which newer events are snapshotted anyway; `None`: never by time.
+    pub interval: Option<std::time::Duration>,
+    pub keep: usize,
+}
+
+/// The writer's snapshot schedule: where it stands, and the one write that may be in flight.
+struct Snapshots {
+    policy: SnapshotPolicy,
+    /// `(rounds, labelled)` of the last snapshot (or of the start: the loaded state).
+    last: (u64, u64),
+    last_at: Instant,
+    in_flight: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Snapshots {
+    fn new(policy: SnapshotPolicy, shared: &Shared) -> Self {
+        let labelled = shared.engine.blocking_read().labelled();
+        Self {
+            policy,
+            last: (shared.rounds.load(Ordering::SeqCst), labelled),
+            last_at: Instant::now(),
+            in_flight: None,
+        }
+    }
+
+    /// Events since the last snapshot.
+    fn pending(&self, rounds: u64, labelled: u64) -> u64 {
+        (rounds - self.last.0.min(rounds)) + (labelled - self.last.1.min(labelled))
+    }
+
+    /// Between groups: starts a snapshot in the background when one is due (or, with
+    /// `finish`, at shutdown: writes one for any new events and waits for it).
+    fn maybe(&mut self, store: &Store, shared: &Shared, finish: bool) {
+        if self.in_flight.as_ref().is_some_and(|h| !h.is_finished()) && !finish {
+            return;
+        }
+        if let Some(h) = self.in_flight.take() {
+            let _ = h.join();
+        }
+        if shared.broken.load(Ordering::SeqCst) {
+            return;
+        }
+        let rounds = shared.rounds.load(Ordering::SeqCst);
+        let engine = shared.engine.blocking_read();
+        let pending = self.pending(rounds, engine.labelled());
+        let by_count = self.policy.every > 0 && pending >= self.policy.every;
+        let by_time = pending > 0
+            && (finish
+                || self
+                    .policy
+                    .interval
+                    .is_some_and(|t| self.last_at.elapsed() >= t));
+        if !(by_count || by_time)
+            || (finish && self.policy.every == 0 && self.policy.interval.is_none())
+        {
+            return;
+        }
+        let anchor = match store.anchor() {
+            Ok(a) if a.rounds == rounds && a.labelled == engine.labelled() => a,
+            Ok(a) => {
+                tracing::warn!(
+                    "snapshot skipped: the database is at {} rounds / {} feedbacks but the \
+                     engine at {rounds} / {}",
+                    a.rounds,
+                    a.labelled,
+                    engine.labelled()
+                );
+                return;
+            }
+            Err(e) => {
+                tracing::warn!("snapshot skipped: {e}");
+                return;
+            }
+        };
+        // A copy under the read lock (fuse requests go on meanwhile); serialising and syncing
+        // it happen on another thread, so the writer does not stall on the disk.
+        let copy = engine.clone();
+        drop(engine);
+        self.last = (anchor.rounds, anchor.labelled);
+        self.last_at = Instant::now();
+        let dir = vlmfuse_store::snapshot::dir_of(store.dir());
+        let keep = self.policy.keep;
+        let job = move || {
+            let t = Instant::now();
+            match vlmfuse_store::snapshot::write(&dir, &copy, &anchor, keep) {
+                Ok(w) => {
+                    metrics::counter!("vlmfuse_snapshots_total").increment(1);
+                    metrics::gauge!("vlmfuse_snapshot_bytes").set(w.bytes as f64);
+                    tracing::info!(
+                        rounds = anchor.rounds,
+                        labelled = anchor.labelled,
+                        bytes = w.bytes,
+                        secs = t.elapsed().as_secs_f64(),
+                        path = %w.path.display(),
+                        "engine snapshot written"
+                    );
+                }
+                Err(e) => {
+                    metrics::counter!("vlmfuse_snapshot_failures_total").increment(1);
+                    tracing::warn!("engine snapshot failed (the next restart replays more): {e}");
+                }
+            }
+        };
+        if finish {
+            job();
+            return;
+        }
+        match std::thread::Builder::new()
+            .name("vlmfuse-snapshot".into())
+            .spawn(job)
+        {
+            Ok(h) => self.in_flight = Some(h),
+            Err(e) => tracing::warn!("cannot start the snapshot thread: {e}"),
+        }
+    }
+}
+
 pub fn spawn(
     mut store: Store,
     shared: Arc<Shared>,
     metrics: Metrics,
     key_ttl: std::time::Duration,
+    snapshots: SnapshotPolicy,
 ) -> std::io::Result<(mpsc::Sender<Cmd>, std::thread::JoinHandle<()>)> {
     let (tx, rx) = mpsc::channel::<Cmd>();
     let handle = std::thread::Builder::new()
@@ -177,7 +300,13 @@ pub fn spawn(
                     ttl_ms: i64::try_from(key_ttl.as_millis()).unwrap_or(i64::MAX),
                     last_prune: None,
                 };
-                metrics.scope(|| run(&mut store, &shared, &mut keys, rx))
+                metrics.scope(|| {
+                    let mut snaps = Snapshots::new(snapshots, &shared);
+                    run(&mut store, &shared, &mut keys, &mut snaps, rx);
+                    // The queue is drained: a snapshot of the final state makes the next start
+                    // replay nothing.
+                    snaps.maybe(&store, &shared, true);
+                })
             }));
             match res {
                 Ok(()) => tracing::info!("writer stopped: every queued write is committed"),
@@ -187,9 +316,25 @@ pub fn spawn(
     Ok((tx, handle))
 }
 
-fn run(store: &mut Store, shared: &Shared, keys: &mut Keys, rx: mpsc::Receiver<Cmd>) {
+fn run(
+    store: &mut Store,
+    shared: &Shared,
+    keys: &mut Keys,
+    snaps: &mut Snapshots,
+    rx: mpsc::Receiver<Cmd>,
+) {
     let mut dim = shared.engine.blocking_read().dim();
-    while let Ok(first) = rx.recv() {
+    loop {
+        // Wake at least once a second while idle, so a snapshot due by time is written even
+        // when no request comes.
+        let first = match rx.recv_timeout(std::time::Duration::from_secs(1)) {
+            Ok(c) => c,
+            Err(mpsc::RecvTimeoutError::Timeout) => {
+                snaps.maybe(store, shared, false);
+                continue;
+            }
+            Err(mpsc::RecvTimeoutError::Disconnected) => break,
+        };
         let mut group = vec![first];
         while group.len() < MAX_GROUP {
             match rx.try_recv() {
@@ -232,6 +377,7 @@ fn run(store: &mut Store, shared: &Shared, keys: &mut Keys, rx: mpsc::Receiver<C
             }
         }
         flush_inserts(store, shared, keys, &mut dim, inserts);
+        snaps.maybe(store, shared, false);
     }
 }
 

@@ -29,7 +29,7 @@ pub type Params = [f64; 3];
 
 const IDENTITY: Params = [1.0, 1.0, 0.0];
 
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Calibrator {
     l: usize,
     window: usize,

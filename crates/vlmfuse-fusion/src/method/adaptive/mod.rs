@@ -38,7 +38,7 @@ use pool::decay;
 /// Whole-pool sums behind the hierarchical prior, decayed to a base clock: the decayed weight of
 /// an entry observed at clock `c` is `2^((c - base) / h)` here, and `2^(-(now - base) / h)` times
 /// that at clock `now`. Rebased (recomputed) when `now - base` exceeds `REBASE_HALF_LIVES`.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 struct GlobalSums {
     base: u64,
     /// Per reporter and label: `[r t, (1-r) t, r (1-t), (1-r)(1-t)]` weighted sums.
@@ -76,7 +76,7 @@ const REBASE_HALF_LIVES: f64 = 40.0;
 const UNLABELLED_REBUILD: f64 = 0.1;
 
 /// The adaptive method's state.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct Adaptive {
     pool: Pool,
     calib: Calibrator,
@@ -96,7 +96,7 @@ pub struct Adaptive {
 }
 
 /// True positives, false positives and false negatives of a stream of decisions.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 struct Tally {
     tp: u64,
     fp: u64,

@@ -17,7 +17,7 @@ use std::collections::HashMap;
 
 /// A neighbour: position, cosine, and the ranking weight it has for the entry (or query) whose
 /// list it is in.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Nb {
     pub pos: u32,
     pub sim: f64,
@@ -35,7 +35,7 @@ pub struct Scan {
     pub rev: Vec<(usize, f64)>,
 }
 
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct Pool {
     /// Contexts, presence and reports (its truths are unused: soft truths live here).
     pub(crate) bank: Bank,
@@ -52,6 +52,7 @@ pub struct Pool {
     clock: Vec<u64>,
     /// Per entry: up to `kmax` neighbours, best first.
     nb: Vec<Vec<Nb>>,
+    #[serde(with = "crate::sorted_map")]
     by_seq: HashMap<u64, usize>,
     /// Positions of the unlabelled entries, ascending: what EM visits.
     unlabelled: Vec<u32>,
