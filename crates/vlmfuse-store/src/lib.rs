@@ -1070,74 +1070,143 @@ impl Store {
         let tx = self
             .conn
             .transaction_with_behavior(TransactionBehavior::Immediate)?;
-        {
-            if let Some(first) = rounds.first() {
-                let d = first.round.context.len();
-                let have: Option<String> = tx
-                    .query_row("SELECT value FROM meta WHERE key = 'dim'", [], |r| r.get(0))
-                    .optional()?;
-                match have {
-                    None => {
-                        tx.execute(
-                            "INSERT INTO meta (key, value) VALUES ('dim', ?1)",
-                            [d.to_string()],
-                        )?;
-                    }
-                    Some(v) if v == d.to_string() => {}
-                    Some(v) => {
-                        return Err(StoreError::Mismatch(format!(
-                            "context dimension {d}, but the database holds dimension {v}"
-                        )))
-                    }
-                }
-            }
-            let mut ins = tx.prepare_cached(
-                "INSERT INTO rounds (seq, round_id, created_ms, context, present, reports, q, threshold)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)",
-            )?;
-            let mut det = tx.prepare_cached(
-                "INSERT INTO round_detail (seq, inference, request) VALUES (?1, ?2, ?3)",
-            )?;
-            for (i, r) in rounds.iter().enumerate() {
-                let seq = first_seq + i as u64;
-                let threshold = r.inference.thresholds.first().copied().unwrap_or(f64::NAN);
-                ins.execute(params![
-                    seq as i64,
-                    round_id(seq),
-                    r.created_ms,
-                    f64s_to_blob(&r.round.context),
-                    bools_to_blob(&r.round.present),
-                    &r.round.reports,
-                    f64s_to_blob(&r.inference.q),
-                    threshold,
-                ])?;
-                det.execute(params![
-                    seq as i64,
-                    serde_json::to_string(&r.inference)?,
-                    serde_json::to_string(&r.request)?,
-                ])?;
-            }
-            let mut key = tx.prepare_cached(
-                "INSERT INTO idempotency (key, route, fingerprint, response, created_ms)
-                 VALUES (?1, ?2, ?3, ?4, ?5)
-                 ON CONFLICT(key) DO UPDATE SET route = excluded.route,
-                   fingerprint = excluded.fingerprint, response = excluded.response,
-                   created_ms = excluded.created_ms",
-            )?;
-            for k in keys {
-                key.execute(params![
-                    k.key,
-                    k.route,
-                    k.fingerprint,
-                    serde_json::to_string(&k.response)?,
-                    k.created_ms,
-                ])?;
-            }
-        }
+        write_rounds(&tx, first_seq, rounds, keys)?;
         tx.commit()?;
         Ok(())
     }
 
+    /// Rounds and the feedback that follows them, in one transaction: a bulk import's chunk.
+    /// Each feedback's `rounds_before` places it among the rounds in event order, as
+    /// [`Store::load_engine`] replays them.
+    pub fn insert_batch(
+        &mut self,
+        first_seq: u64,
+        rounds: &[NewRound],
+        fbs: &[StoredFeedback],
+    ) -> Result<(), StoreError> {
+        let tx = self
+            .conn
+            .transaction_with_behavior(TransactionBehavior::Immediate)?;
+        write_rounds(&tx, first_seq, rounds, &[])?;
+        write_feedback(&tx, fbs)?;
+        tx.commit()?;
+        Ok(())
+    }
+
+    /// Undoes everything stored after `to` (a point [`Store::anchor`] gave): the rounds from
+    /// `to.rounds`, the feedback from `to.labelled`, and the state row back to `reputations`
+    /// (the engine's at that point). For a bulk import that failed half-way, so that a file
+    /// that fails stores nothing.
+    pub fn roll_back_to(
+        &mut self,
+        to: &snapshot::Anchor,
+        reputations: &[f64],
+    ) -> Result<(), StoreError> {
+        let tx = self
+            .conn
+            .transaction_with_behavior(TransactionBehavior::Immediate)?;
+        tx.execute(
+            "DELETE FROM feedback WHERE labelled_order >= ?1",
+            [to.labelled as i64],
+        )?;
+        tx.execute("DELETE FROM feedback WHERE seq >= ?1", [to.rounds as i64])?;
+        tx.execute(
+            "DELETE FROM round_detail WHERE seq >= ?1",
+            [to.rounds as i64],
+        )?;
+        tx.execute("DELETE FROM rounds WHERE seq >= ?1", [to.rounds as i64])?;
+        if to.labelled == 0 {
+            tx.execute("DELETE FROM state", [])?;
+        } else {
+            tx.execute(
+                "UPDATE state SET reputations = ?1, labelled = ?2 WHERE id = 1",
+                params![serde_json::to_string(reputations)?, to.labelled as i64],
+            )?;
+        }
+        if to.rounds == 0 {
+            tx.execute("DELETE FROM meta WHERE key = 'dim'", [])?;
+        }
+        tx.commit()?;
+        Ok(())
+    }
+}
+
+/// The rows of `rounds` from `first_seq`, and their idempotency keys, inside `tx`. The first
+/// round ever stored fixes the context dimension.
+fn write_rounds(
+    tx: &rusqlite::Transaction<'_>,
+    first_seq: u64,
+    rounds: &[NewRound],
+    keys: &[IdempotencyRecord],
+) -> Result<(), StoreError> {
+    {
+        if let Some(first) = rounds.first() {
+            let d = first.round.context.len();
+            let have: Option<String> = tx
+                .query_row("SELECT value FROM meta WHERE key = 'dim'", [], |r| r.get(0))
+                .optional()?;
+            match have {
+                None => {
+                    tx.execute(
+                        "INSERT INTO meta (key, value) VALUES ('dim', ?1)",
+                        [d.to_string()],
+                    )?;
+                }
+                Some(v) if v == d.to_string() => {}
+                Some(v) => {
+                    return Err(StoreError::Mismatch(format!(
+                        "context dimension {d}, but the database holds dimension {v}"
+                    )))
+                }
+            }
+        }
+        let mut ins = tx.prepare_cached(
+                "INSERT INTO rounds (seq, round_id, created_ms, context, present, reports, q, threshold)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)",
+            )?;
+        let mut det = tx.prepare_cached(
+            "INSERT INTO round_detail (seq, inference, request) VALUES (?1, ?2, ?3)",
+        )?;
+        for (i, r) in rounds.iter().enumerate() {
+            let seq = first_seq + i as u64;
+            let threshold = r.inference.thresholds.first().copied().unwrap_or(f64::NAN);
+            ins.execute(params![
+                seq as i64,
+                round_id(seq),
+                r.created_ms,
+                f64s_to_blob(&r.round.context),
+                bools_to_blob(&r.round.present),
+                &r.round.reports,
+                f64s_to_blob(&r.inference.q),
+                threshold,
+            ])?;
+            det.execute(params![
+                seq as i64,
+                serde_json::to_string(&r.inference)?,
+                serde_json::to_string(&r.request)?,
+            ])?;
+        }
+        let mut key = tx.prepare_cached(
+            "INSERT INTO idempotency (key, route, fingerprint, response, created_ms)
+                 VALUES (?1, ?2, ?3, ?4, ?5)
+                 ON CONFLICT(key) DO UPDATE SET route = excluded.route,
+                   fingerprint = excluded.fingerprint, response = excluded.response,
+                   created_ms = excluded.created_ms",
+        )?;
+        for k in keys {
+            key.execute(params![
+                k.key,
+                k.route,
+                k.fingerprint,
+                serde_json::to_string(&k.response)?,
+                k.created_ms,
+            ])?;
+        }
+    }
+    Ok(())
+}
+
+impl Store {
     /// The record of an idempotency key created at or after `not_before_ms` (older ones have
     /// expired, even before [`prune_idempotency`](Self::prune_idempotency) removes them).
     pub fn idempotency(
@@ -1269,50 +1338,70 @@ impl Store {
     /// Commits feedback, in labelling order, and the reputations the last one leads to, in one
     /// transaction. The caller applies them to the engine only after this returns `Ok`.
     pub fn insert_feedback(&mut self, fbs: &[StoredFeedback]) -> Result<(), StoreError> {
-        let Some(last) = fbs.last() else {
+        if fbs.is_empty() {
             return Ok(());
-        };
+        }
         let tx = self
             .conn
             .transaction_with_behavior(TransactionBehavior::Immediate)?;
-        {
-            let labelled: i64 = tx.query_row("SELECT COUNT(*) FROM feedback", [], |r| r.get(0))?;
-            let mut ins = tx.prepare_cached(
-                "INSERT INTO feedback (seq, labelled_order, created_ms, truth, outcome, rounds_before)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
-            )?;
-            let now = now_ms();
-            for (i, fb) in fbs.iter().enumerate() {
-                if labelled as u64 + i as u64 != fb.labelled_order {
-                    return Err(StoreError::Corrupt(format!(
-                        "feedback would be number {} in labelling order, but {} precede it",
-                        fb.labelled_order,
-                        labelled as u64 + i as u64
-                    )));
-                }
-                ins.execute(params![
-                    fb.seq as i64,
-                    fb.labelled_order as i64,
-                    now,
-                    &fb.truth,
-                    serde_json::to_string(&fb.outcome)?,
-                    fb.rounds_before as i64
-                ])?;
-            }
-            tx.execute(
-                "INSERT INTO state (id, reputations, labelled) VALUES (1, ?1, ?2)
-                 ON CONFLICT(id) DO UPDATE SET reputations = excluded.reputations,
-                                               labelled = excluded.labelled",
-                params![
-                    serde_json::to_string(&last.outcome.w_after)?,
-                    last.labelled_order as i64 + 1
-                ],
-            )?;
-        }
+        write_feedback(&tx, fbs)?;
         tx.commit()?;
         Ok(())
     }
+}
 
+/// `fbs` in labelling order inside `tx`, and the state row after the last.
+fn write_feedback(
+    tx: &rusqlite::Transaction<'_>,
+    fbs: &[StoredFeedback],
+) -> Result<(), StoreError> {
+    let Some(last) = fbs.last() else {
+        return Ok(());
+    };
+    {
+        // The next labelling order: the highest stored plus one (an index lookup; a count
+        // would scan the table on every feedback).
+        let labelled: i64 = tx.query_row(
+            "SELECT COALESCE(MAX(labelled_order) + 1, 0) FROM feedback",
+            [],
+            |r| r.get(0),
+        )?;
+        let mut ins = tx.prepare_cached(
+            "INSERT INTO feedback (seq, labelled_order, created_ms, truth, outcome, rounds_before)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+        )?;
+        let now = now_ms();
+        for (i, fb) in fbs.iter().enumerate() {
+            if labelled as u64 + i as u64 != fb.labelled_order {
+                return Err(StoreError::Corrupt(format!(
+                    "feedback would be number {} in labelling order, but {} precede it",
+                    fb.labelled_order,
+                    labelled as u64 + i as u64
+                )));
+            }
+            ins.execute(params![
+                fb.seq as i64,
+                fb.labelled_order as i64,
+                now,
+                &fb.truth,
+                serde_json::to_string(&fb.outcome)?,
+                fb.rounds_before as i64
+            ])?;
+        }
+        tx.execute(
+            "INSERT INTO state (id, reputations, labelled) VALUES (1, ?1, ?2)
+                 ON CONFLICT(id) DO UPDATE SET reputations = excluded.reputations,
+                                               labelled = excluded.labelled",
+            params![
+                serde_json::to_string(&last.outcome.w_after)?,
+                last.labelled_order as i64 + 1
+            ],
+        )?;
+    }
+    Ok(())
+}
+
+impl Store {
     /// Counts of stored rounds and feedback, for tests and `/v1/state`.
     pub fn counts(&self) -> Result<(u64, u64), StoreError> {
         let r: i64 = self

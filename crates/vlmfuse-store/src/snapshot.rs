@@ -102,7 +102,7 @@ pub fn list(dir: &Path) -> Vec<PathBuf> {
             Some((parse_name(&name)?, e.path()))
         })
         .collect();
-    found.sort_by(|a, b| b.0.cmp(&a.0));
+    found.sort_by_key(|f| std::cmp::Reverse(f.0));
     found.into_iter().map(|(_, p)| p).collect()
 }
 

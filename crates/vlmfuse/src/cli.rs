@@ -1,8 +1,8 @@
 //! The `vlmfuse` command line: one binary for the service (`serve`), the paper's evaluation
-//! protocol (`eval`), the benchmarks (`bench`), the labeler (`label`) and one reporter on one
-//! clip (`describe`).
+//! protocol (`eval`), the benchmarks (`bench`), bulk loading (`import`), the labeler (`label`)
+//! and one reporter on one clip (`describe`).
 
-use crate::{bench, config, describe, eval, label, serve};
+use crate::{bench, config, describe, eval, import, label, serve};
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
@@ -25,6 +25,9 @@ pub enum Cmd {
     Eval(eval::EvalArgs),
     /// Measure the engine (fuse-then-feedback per round, batched against per-query kNN).
     Bench(bench::BenchArgs),
+    /// Store a rounds file in a data directory as if it had come through /v1/fuse and
+    /// /v1/feedback (the server must not be running on it).
+    Import(Box<import::ImportArgs>),
     /// Label VLM answers with the configured labeler and show the evidence for each label.
     Label(label::LabelArgs),
     /// Run one configured reporter on one clip: its answer and labels, and with `--dump` the
@@ -39,6 +42,7 @@ pub fn main() -> ExitCode {
         Cmd::Serve(args) => serve::run(*args),
         Cmd::Eval(args) => eval::run(args),
         Cmd::Bench(args) => bench::run(args),
+        Cmd::Import(args) => import::run(*args),
         Cmd::Label(args) => label::run(args),
         Cmd::Describe(args) => describe::run(args),
     };

@@ -20,6 +20,7 @@ pub mod conn;
 pub mod describe;
 pub mod eval;
 pub mod http;
+pub mod import;
 pub mod label;
 mod plots;
 pub mod serve;

@@ -205,7 +205,6 @@ fn replay_equals_eval_and_a_kill_9_loses_nothing() {
     let tmp = tempfile::tempdir().unwrap();
     let (rounds, file) = rounds(tmp.path());
     let reporters = sorted_reporters(&rounds).join(",");
-    let args = ["--reporters", reporters.as_str()];
 
     // Uninterrupted run (A) beside eval, while the interrupted run (B) goes in this thread.
     let (dir_a, file_a, rounds_a, reporters_a) = (
@@ -222,8 +221,11 @@ fn replay_equals_eval_and_a_kill_9_loses_nothing() {
         (emitted, prog.seen, srv.state())
     });
 
+    // The interrupted run snapshots its engine every few events, so its restart loads a
+    // snapshot and replays only the tail: which must change nothing.
     let dir_b = tmp.path().join("b");
-    let mut srv = Server::start(&dir_b, &args, &[]);
+    let args_b = ["--reporters", reporters.as_str(), "--snapshot-every", "37"];
+    let mut srv = Server::start(&dir_b, &args_b, &[]);
     let mut prog = Progress::default();
     let half = rounds.len() / 2;
     assert!(replay(&srv.addr, &rounds[..half], &mut prog));
@@ -264,7 +266,12 @@ fn replay_equals_eval_and_a_kill_9_loses_nothing() {
         .collect();
     assert!(acked > half, "nothing got through after the half");
 
-    let srv = Server::start(&dir_b, &args, &[]);
+    let srv = Server::start(&dir_b, &args_b, &[("RUST_LOG", "info")]);
+    let log = std::fs::read_to_string(dir_b.join("server.log")).unwrap();
+    assert!(
+        log.contains("engine loaded from a snapshot"),
+        "the restart did not use a snapshot: {log}"
+    );
     let st = srv.state();
     let labelled = st["labelled_rounds"].as_u64().unwrap() as usize;
     // Every acknowledged feedback is there; at most the one in flight was committed unseen.
@@ -311,4 +318,77 @@ fn replay_equals_eval_and_a_kill_9_loses_nothing() {
     ] {
         assert_eq!(state_a[key], state_b[key], "final state {key} differs");
     }
+}
+
+fn import(file: &Path, dir: &Path, reporters: &str) -> std::process::Output {
+    Command::new(BIN)
+        .args(["import", file.to_str().unwrap(), "--quiet", "--reporters"])
+        .arg(reporters)
+        .arg("--data-dir")
+        .arg(dir)
+        .env_remove("VLMFUSE_CONFIG")
+        .output()
+        .unwrap()
+}
+
+/// `vlmfuse import` of the first part of a rounds file, then the rest through the service:
+/// the service continues exactly as `eval` over the whole file (the import stored the events a
+/// live writer would have), and starts from the snapshot the import left. A file with bad
+/// lines is refused with their numbers and stores nothing.
+#[test]
+fn an_imported_history_continues_as_eval_does() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (rounds, file) = rounds(tmp.path());
+    let reporters = sorted_reporters(&rounds).join(",");
+    let emitted = eval(&file, &tmp.path().join("emit.jsonl"));
+    let dir = tmp.path().join("data");
+
+    // Bad lines: an unknown reporter, another dimension, and not JSON.
+    let mut bad: Vec<Value> = rounds[..5].to_vec();
+    let mut stranger = rounds[5].clone();
+    stranger["reports"]["stranger"] = json!([]);
+    bad.push(stranger);
+    let mut short = rounds[6].clone();
+    short["context"].as_array_mut().unwrap().pop();
+    bad.push(short);
+    let bad_file = tmp.path().join("bad.jsonl");
+    write_jsonl(&bad_file, &bad);
+    let mut text = std::fs::read_to_string(&bad_file).unwrap();
+    text.push_str("{not json\n");
+    std::fs::write(&bad_file, text).unwrap();
+    let o = import(&bad_file, &dir, &reporters);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "a bad file was imported");
+    for line in [
+        "line 6:",
+        "line 7:",
+        "line 8:",
+        "3 bad line(s)",
+        "nothing was imported",
+    ] {
+        assert!(err.contains(line), "{line:?} missing from: {err}");
+    }
+    let (stored, _) = vlmfuse_store::Store::open_read_only(&dir)
+        .unwrap()
+        .counts()
+        .unwrap();
+    assert_eq!(stored, 0, "a refused file stored rounds");
+
+    let cut = rounds.len() * 2 / 3;
+    let head = tmp.path().join("head.jsonl");
+    write_jsonl(&head, &rounds[..cut]);
+    let o = import(&head, &dir, &reporters);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+
+    let srv = Server::start(&dir, &["--reporters", &reporters], &[("RUST_LOG", "info")]);
+    let st = srv.state();
+    assert_eq!(st["rounds"].as_u64(), Some(cut as u64));
+    let log = std::fs::read_to_string(dir.join("server.log")).unwrap();
+    assert!(
+        log.contains("engine loaded from a snapshot"),
+        "the start replayed everything: {log}"
+    );
+    let mut prog = Progress::default();
+    assert!(replay(&srv.addr, &rounds[cut..], &mut prog));
+    compare_with_eval(&prog.seen, &emitted[cut..]);
 }

@@ -1,0 +1,279 @@
+//! `vlmfuse import`: a rounds file (the `eval` format, one JSON round per line, `truth`
+//! optional) into a data directory, as if each round had come through `/v1/fuse` and, where it
+//! has a truth, its `/v1/feedback` right after: inferred against the state as it stands,
+//! stored, learned from. The service started on the directory afterwards continues from there
+//! exactly (the same events a live writer would have stored, in the same order), and starts
+//! from the snapshot the import leaves behind instead of replaying the file.
+//!
+//! The file is read twice: first every line is checked (JSON, reporters, labels, context
+//! dimension) and any bad line is reported with its number, storing nothing; then it is
+//! imported in chunks of one transaction each. A failure during the second pass (a full disk)
+//! rolls the directory back to where it was, so a file either imports whole or not at all.
+
+use crate::config::{Config, ServeArgs};
+use anyhow::{bail, Context};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::fs::File;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+use vlmfuse_fusion::{Engine, LabelledRound, RoundRecord};
+use vlmfuse_store::{snapshot, Identity, NewRound, Store, StoredFeedback};
+
+#[derive(clap::Args)]
+pub struct ImportArgs {
+    /// The rounds file (JSON lines: `context`, `reports`, optional `truth` and `id`).
+    pub file: PathBuf,
+    /// Rounds per transaction.
+    #[arg(long, default_value_t = 2000)]
+    pub chunk: usize,
+    /// At most this many bad lines are listed (all are counted).
+    #[arg(long, default_value_t = 20)]
+    pub max_errors: usize,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+    /// The service's configuration (`--config`, `--reporters`, `--data-dir`, every `serve`
+    /// flag): the import writes where, and as, `vlmfuse serve` with these would.
+    #[command(flatten)]
+    pub serve: ServeArgs,
+}
+
+/// What an import did.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Imported {
+    pub rounds: u64,
+    pub labelled: u64,
+}
+
+fn bar(quiet: bool, len: u64, what: &str) -> ProgressBar {
+    if quiet {
+        return ProgressBar::hidden();
+    }
+    let b = ProgressBar::new(len);
+    b.set_style(
+        ProgressStyle::with_template(
+            "{spinner} {msg:<10} [{bar:40}] {bytes}/{total_bytes} ({bytes_per_sec}, eta {eta})",
+        )
+        .expect("static template")
+        .progress_chars("=> "),
+    );
+    b.set_message(what.to_string());
+    b
+}
+
+/// The non-empty lines of the file with their 1-based numbers, and the bytes read so far.
+fn lines(
+    path: &Path,
+) -> anyhow::Result<impl Iterator<Item = (usize, u64, std::io::Result<String>)>> {
+    let f = File::open(path).with_context(|| format!("cannot open {}", path.display()))?;
+    let mut read = 0u64;
+    Ok(BufReader::with_capacity(1 << 20, f)
+        .lines()
+        .enumerate()
+        .map(move |(i, l)| {
+            if let Ok(s) = &l {
+                read += s.len() as u64 + 1;
+            }
+            (i + 1, read, l)
+        })
+        .filter(|(_, _, l)| l.as_ref().map_or(true, |s| !s.trim().is_empty())))
+}
+
+pub fn run(args: ImportArgs) -> anyhow::Result<()> {
+    let cfg = Config::load(&args.serve)?;
+    let t = Instant::now();
+    let done = import(&cfg, &args.file, args.chunk, args.max_errors, args.quiet)?;
+    let secs = t.elapsed().as_secs_f64();
+    eprintln!(
+        "imported {} rounds ({} labelled) from {} into {} in {secs:.1} s ({:.0} rounds/s)",
+        done.rounds,
+        done.labelled,
+        args.file.display(),
+        cfg.server.data_dir.display(),
+        done.rounds as f64 / secs.max(1e-9)
+    );
+    Ok(())
+}
+
+/// Imports `file` into `cfg.server.data_dir` (see the module docs).
+pub fn import(
+    cfg: &Config,
+    file: &Path,
+    chunk: usize,
+    max_errors: usize,
+    quiet: bool,
+) -> anyhow::Result<Imported> {
+    if chunk == 0 {
+        bail!("--chunk must be at least 1");
+    }
+    let total = std::fs::metadata(file)
+        .with_context(|| format!("cannot read {}", file.display()))?
+        .len();
+    let mut engine = Engine::new(
+        cfg.fusion.clone(),
+        cfg.ontology.clone(),
+        cfg.reporters.clone(),
+    )
+    .context("fusion engine")?;
+    let mut store = Store::open(&cfg.server.data_dir)?;
+    store.check_identity(&Identity {
+        reporters: cfg.reporters.clone(),
+        labels: cfg.ontology.ids().map(str::to_string).collect(),
+    })?;
+    store
+        .load_engine(&mut engine)
+        .with_context(|| format!("rebuilding the engine from {}", store.path().display()))?;
+
+    // Pass 1: every line, against a copy of the engine (its dimension fixed by the store or by
+    // the first round, as the service's first stored round fixes it).
+    let b = bar(quiet, total, "checking");
+    let mut check = engine.clone();
+    let mut bad: Vec<String> = Vec::new();
+    let mut nbad = 0usize;
+    let mut good = 0u64;
+    for (line, read, text) in lines(file)? {
+        b.set_position(read);
+        let text = text.with_context(|| format!("{}: line {line}", file.display()))?;
+        let res = serde_json::from_str::<RoundRecord>(&text)
+            .map_err(|e| e.to_string())
+            .and_then(|rec| {
+                if check.dim().is_none() {
+                    check
+                        .fix_dim(rec.context.len())
+                        .map_err(|e| e.to_string())?;
+                }
+                check.parse(&rec).map(|_| ()).map_err(|e| e.to_string())
+            });
+        match res {
+            Ok(()) => good += 1,
+            Err(e) => {
+                nbad += 1;
+                if bad.len() < max_errors {
+                    bad.push(format!("line {line}: {e}"));
+                }
+            }
+        }
+    }
+    b.finish_and_clear();
+    if nbad > 0 {
+        let more = if nbad > bad.len() {
+            format!("\n  ... and {} more", nbad - bad.len())
+        } else {
+            String::new()
+        };
+        bail!(
+            "{}: {nbad} bad line(s); nothing was imported:\n  {}{more}",
+            file.display(),
+            bad.join("\n  ")
+        );
+    }
+    if good == 0 {
+        bail!(
+            "{}: no rounds in the file; nothing was imported",
+            file.display()
+        );
+    }
+
+    // Pass 2: the events, in chunks of one transaction.
+    let start = store.anchor()?;
+    let start_w = engine.reputations().to_vec();
+    let res = ingest(&mut store, &mut engine, file, chunk, quiet, total);
+    match res {
+        Ok(done) => {
+            let anchor = store.anchor()?;
+            let dir = snapshot::dir_of(store.dir());
+            let keep = cfg.server.snapshot_keep;
+            drop(store);
+            if let Err(e) = snapshot::write(&dir, &engine, &anchor, keep) {
+                eprintln!("warning: the import is stored, but its snapshot failed ({e}); the next start replays every event");
+            }
+            Ok(done)
+        }
+        Err(e) => {
+            store.roll_back_to(&start, &start_w).with_context(|| {
+                format!(
+                    "the import failed ({e:#}) and rolling back failed too: the data directory \
+                     holds part of the file"
+                )
+            })?;
+            Err(e.context("the import failed; the data directory is as it was before"))
+        }
+    }
+}
+
+fn ingest(
+    store: &mut Store,
+    engine: &mut Engine,
+    file: &Path,
+    chunk: usize,
+    quiet: bool,
+    total: u64,
+) -> anyhow::Result<Imported> {
+    let b = bar(quiet, total, "importing");
+    let mut seq = store.anchor()?.rounds;
+    let mut first = seq;
+    let mut rounds: Vec<NewRound> = Vec::with_capacity(chunk);
+    let mut fbs: Vec<StoredFeedback> = Vec::new();
+    let mut done = Imported {
+        rounds: 0,
+        labelled: 0,
+    };
+    let name = file.display().to_string();
+    for (line, read, text) in lines(file)? {
+        let text = text.with_context(|| format!("{name}: line {line}"))?;
+        let rec: RoundRecord =
+            serde_json::from_str(&text).with_context(|| format!("{name}: line {line}"))?;
+        if engine.dim().is_none() {
+            engine.fix_dim(rec.context.len())?;
+        }
+        let (round, truth) = engine
+            .parse(&rec)
+            .with_context(|| format!("{name}: line {line} (changed since it was checked?)"))?;
+        let inf = engine.infer(&round);
+        engine.observe(seq, &round, &inf)?;
+        if let Some(truth) = truth {
+            let outcome = engine.credit(&inf.signals, &inf.w_used, &truth, seq);
+            fbs.push(StoredFeedback {
+                seq,
+                labelled_order: engine.labelled(),
+                rounds_before: seq + 1,
+                truth: truth.clone(),
+                outcome: outcome.clone(),
+            });
+            engine.apply(
+                &LabelledRound {
+                    seq,
+                    round: round.clone(),
+                    truth,
+                    q: inf.q.clone(),
+                },
+                Some(&outcome),
+            )?;
+            done.labelled += 1;
+        }
+        let mut stored = inf;
+        stored.scan = None;
+        rounds.push(NewRound {
+            round,
+            inference: stored,
+            request: serde_json::json!({
+                "import": { "file": name, "line": line, "id": rec.id },
+                "reports": rec.reports,
+            }),
+            created_ms: vlmfuse_store::timestamp_ms(),
+        });
+        seq += 1;
+        done.rounds += 1;
+        if rounds.len() >= chunk {
+            store.insert_batch(first, &rounds, &fbs)?;
+            rounds.clear();
+            fbs.clear();
+            first = seq;
+            b.set_position(read);
+        }
+    }
+    store.insert_batch(first, &rounds, &fbs)?;
+    b.finish_and_clear();
+    Ok(done)
+}
