@@ -6,11 +6,15 @@ fn engine() -> Engine {
 }
 
 fn engine_with(method: vlmfuse_fusion::Method) -> Engine {
+    engine_cfg(FusionConfig {
+        method,
+        ..FusionConfig::default()
+    })
+}
+
+fn engine_cfg(cfg: FusionConfig) -> Engine {
     Engine::new(
-        FusionConfig {
-            method,
-            ..FusionConfig::default()
-        },
+        cfg,
         Ontology::paper(),
         vec!["a".into(), "b".into(), "c".into()],
     )
@@ -549,8 +553,19 @@ fn with_snapshot(
     at: u64,
     upto: u64,
 ) -> (tempfile::TempDir, Engine) {
+    with_snapshot_cfg(
+        FusionConfig {
+            method,
+            ..FusionConfig::default()
+        },
+        at,
+        upto,
+    )
+}
+
+fn with_snapshot_cfg(cfg: FusionConfig, at: u64, upto: u64) -> (tempfile::TempDir, Engine) {
     let dir = tempfile::tempdir().unwrap();
-    let mut live = engine_with(method);
+    let mut live = engine_cfg(cfg);
     let mut store = Store::open(dir.path()).unwrap();
     store.check_identity(&identity(&live)).unwrap();
     store.load_engine(&mut live).unwrap();
@@ -564,10 +579,20 @@ fn with_snapshot(
 
 /// Loads the directory twice, from its snapshot and by the full replay.
 fn load_both(dir: &Path, method: vlmfuse_fusion::Method) -> (Engine, LoadReport, Engine) {
+    load_both_cfg(
+        dir,
+        FusionConfig {
+            method,
+            ..FusionConfig::default()
+        },
+    )
+}
+
+fn load_both_cfg(dir: &Path, cfg: FusionConfig) -> (Engine, LoadReport, Engine) {
     let mut store = Store::open(dir).unwrap();
-    let mut snap = engine_with(method);
+    let mut snap = engine_cfg(cfg.clone());
     let rep = store.load_engine(&mut snap).unwrap();
-    let mut full = engine_with(method);
+    let mut full = engine_cfg(cfg);
     let full_rep = store.load_engine_full(&mut full).unwrap();
     assert!(full_rep.snapshot.is_none());
     assert_eq!(
