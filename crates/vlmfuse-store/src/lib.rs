@@ -4,10 +4,13 @@
 //! SQLite in WAL mode with `synchronous=FULL` because it needs no server, survives `kill -9` and
 //! power loss once a transaction commits, and lets readers run beside the one writer.
 //!
-//! The engine is not serialised as a whole. It is a pure function of the labelled rounds in
-//! labelling order and of their feedback outcomes, so the store keeps exactly those and replays
-//! them on start ([`Store::load_engine`]); that keeps each feedback's transaction small (one row,
-//! not a snapshot of the bank) and makes a restart equal, bit for bit, to never having stopped.
+//! The engine is not serialised with each event. It is a pure function of the events (rounds in
+//! order, feedback in labelling order with their outcomes), so the store keeps exactly those and
+//! replays them on start ([`Store::load_engine`]); that keeps each feedback's transaction small
+//! (one row, not a snapshot of the bank) and makes a restart equal, bit for bit, to never having
+//! stopped. So that a long history does not make a long start, the writer also keeps
+//! [`snapshot`]s of the engine now and then: a start loads the newest usable one and replays
+//! only the events after it, which gives the same engine, bit for bit.
 
 use rusqlite::{params, Connection, OpenFlags, OptionalExtension, TransactionBehavior};
 use serde::{Deserialize, Serialize};

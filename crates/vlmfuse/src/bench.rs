@@ -27,6 +27,173 @@ pub struct BenchArgs {
     /// Skip the eval end-to-end and batch-kNN parts.
     #[arg(long)]
     pub engine_only: bool,
+    /// Instead of the engine tables: the state at scale. For each size, a generated rounds
+    /// file (one round in ten labelled, `--dim`, `--reporters`) is imported into a fresh data
+    /// directory (`vlmfuse import`'s code), then the restart is timed from the snapshot and by
+    /// the full replay, and `--rounds` more live rounds (infer, store, observe; feedback for
+    /// one in ten) are timed against the loaded state, with the process's RSS.
+    #[arg(long, value_delimiter = ',')]
+    pub scale: Vec<usize>,
+    /// The fusion method of the scale run.
+    #[arg(long, default_value = "adaptive", value_parser = parse_method)]
+    pub method: Method,
+}
+
+fn parse_method(s: &str) -> Result<Method, String> {
+    match s {
+        "paper" => Ok(Method::Paper),
+        "adaptive" => Ok(Method::Adaptive),
+        _ => Err(format!("unknown method {s:?}; expected paper or adaptive")),
+    }
+}
+
+/// Resident set size of this process, in bytes (Linux; 0 elsewhere).
+fn rss_bytes() -> u64 {
+    std::fs::read_to_string("/proc/self/statm")
+        .ok()
+        .and_then(|s| s.split_whitespace().nth(1)?.parse::<u64>().ok())
+        .map_or(0, |pages| pages * 4096)
+}
+
+fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
+    use vlmfuse_fusion::bench::{reporter_names, Synth};
+    use vlmfuse_fusion::{Engine, LabelledRound, RoundRecord};
+    use vlmfuse_store::{NewRound, Store, StoredFeedback};
+    let ontology = Ontology::paper();
+    let l = ontology.len();
+    let names = reporter_names(args.reporters);
+    println!(
+        "state at scale, method {}, d = {}, n = {}, one round in ten labelled; restart = open +          rebuild of the engine (the service's start before it listens)",
+        args.method.name(),
+        args.dim,
+        args.reporters
+    );
+    for &n in &args.scale {
+        let tmp = tempfile::tempdir()?;
+        let file = tmp.path().join("rounds.jsonl");
+        {
+            let mut synth = Synth::new(7, args.dim, args.reporters, l);
+            let mut w = std::io::BufWriter::new(std::fs::File::create(&file)?);
+            for t in 0..n {
+                let s = synth.round();
+                let reports = names
+                    .iter()
+                    .enumerate()
+                    .map(|(i, name)| {
+                        (
+                            name.clone(),
+                            ontology.decode(&s.round.reports[i * l..(i + 1) * l]),
+                        )
+                    })
+                    .collect();
+                let rec = RoundRecord {
+                    id: None,
+                    context: s.round.context,
+                    reports,
+                    truth: (t % 10 == 0).then(|| ontology.decode(&s.truth)),
+                };
+                serde_json::to_writer(&mut w, &rec)?;
+                w.write_all(b"\n")?;
+            }
+        }
+        let data = tmp.path().join("data");
+        let mut cfg = crate::Config::default();
+        cfg.reporters = names.clone();
+        cfg.fusion.method = args.method;
+        cfg.server.data_dir = data.clone();
+        let t = Instant::now();
+        let done = crate::import::import(&cfg, &file, 2000, 20, false)?;
+        let import_s = t.elapsed().as_secs_f64();
+        let snap_bytes: u64 =
+            vlmfuse_store::snapshot::list(&vlmfuse_store::snapshot::dir_of(&data))
+                .iter()
+                .filter_map(|p| std::fs::metadata(p).ok())
+                .map(|m| m.len())
+                .sum();
+        let fresh = || Engine::new(cfg.fusion.clone(), ontology.clone(), names.clone());
+        let t = Instant::now();
+        let mut store = Store::open(&data)?;
+        let mut engine = fresh()?;
+        let rep = store.load_engine(&mut engine)?;
+        let from_snapshot_s = t.elapsed().as_secs_f64();
+        anyhow::ensure!(rep.snapshot.is_some(), "the import left no usable snapshot");
+        let t = Instant::now();
+        let mut full = fresh()?;
+        store.load_engine_full(&mut full)?;
+        let full_s = t.elapsed().as_secs_f64();
+        drop(full);
+        // Live rounds against the loaded state, as the writer runs them.
+        let mut synth = Synth::new(8, args.dim, args.reporters, l);
+        let mut lat = Vec::with_capacity(args.rounds);
+        let mut eng = Vec::with_capacity(args.rounds);
+        let mut seq = rep.next_seq;
+        for t in 0..args.rounds {
+            let s = synth.round();
+            let t0 = Instant::now();
+            let mut in_store = std::time::Duration::ZERO;
+            let inf = engine.infer(&s.round);
+            let mut stored = inf.clone();
+            stored.scan = None;
+            let ts = Instant::now();
+            store.insert_rounds(
+                seq,
+                &[NewRound {
+                    round: s.round.clone(),
+                    inference: stored,
+                    request: serde_json::json!({}),
+                    created_ms: vlmfuse_store::timestamp_ms(),
+                }],
+            )?;
+            in_store += ts.elapsed();
+            engine.observe(seq, &s.round, &inf)?;
+            if t % 10 == 0 {
+                let o = engine.credit(&inf.signals, &inf.w_used, &s.truth, seq);
+                let ts = Instant::now();
+                store.insert_feedback(&[StoredFeedback {
+                    seq,
+                    labelled_order: engine.labelled(),
+                    rounds_before: seq + 1,
+                    truth: s.truth.clone(),
+                    outcome: o.clone(),
+                }])?;
+                in_store += ts.elapsed();
+                engine.apply(
+                    &LabelledRound {
+                        seq,
+                        round: s.round,
+                        truth: s.truth,
+                        q: inf.q,
+                    },
+                    Some(&o),
+                )?;
+            }
+            let total = t0.elapsed();
+            lat.push(total.as_secs_f64() * 1e3);
+            eng.push((total - in_store).as_secs_f64() * 1e3);
+            seq += 1;
+        }
+        lat.sort_by(f64::total_cmp);
+        eng.sort_by(f64::total_cmp);
+        let pct = |p: f64| vlmfuse_fusion::bench::percentile(&lat, p);
+        let epct = |p: f64| vlmfuse_fusion::bench::percentile(&eng, p);
+        println!(
+            "{n:>9} rounds ({} labelled): import {import_s:.1} s ({:.0} rounds/s); snapshot {:.0} MB; \
+             restart from the snapshot {from_snapshot_s:.2} s, by full replay {full_s:.2} s \
+             ({:.0}x); per live round: engine p50 {:.2} ms, p99 {:.2} ms; with its commits (an \
+             fsync each) p50 {:.2} ms, p99 {:.2} ms; RSS {:.0} MB",
+            done.labelled,
+            done.rounds as f64 / import_s,
+            snap_bytes as f64 / 1e6,
+            full_s / from_snapshot_s.max(1e-9),
+            epct(0.5),
+            epct(0.99),
+            pct(0.5),
+            pct(0.99),
+            rss_bytes() as f64 / 1e6
+        );
+        let _ = std::io::stdout().flush();
+    }
+    Ok(())
 }
 
 fn eval_bench(args: &BenchArgs) -> anyhow::Result<()> {
@@ -148,6 +315,9 @@ fn knn_bench(args: &BenchArgs) -> anyhow::Result<()> {
 pub fn run(args: BenchArgs) -> anyhow::Result<()> {
     if cfg!(debug_assertions) {
         eprintln!("warning: a debug build; run `cargo run --release -- bench` for real numbers");
+    }
+    if !args.scale.is_empty() {
+        return scale_bench(&args);
     }
     engine_bench(&args)?;
     if !args.engine_only {

@@ -52,3 +52,67 @@ fn sigterm_lets_the_request_in_flight_finish() {
         "the round answered at shutdown was kept"
     );
 }
+
+/// A clean shutdown snapshots the final state (below `snapshot_every`), so the next start loads
+/// it and replays nothing; a start with the snapshot directory gone replays everything and
+/// reaches the same state.
+#[test]
+fn sigterm_leaves_a_snapshot_of_the_final_state() {
+    use serde_json::json;
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("data");
+    let args = ["--reporters", "a,b"];
+    let mut srv = Server::start(&dir, &args, &[]);
+    for i in 0..12 {
+        let x = i as f64;
+        let r = srv.post(
+            "/v1/fuse",
+            &json!({"context": [1.0, x, 0.5], "reports": {"a": ["brake"], "b": []}}),
+        );
+        assert_eq!(r.status, 200);
+        if i % 2 == 0 {
+            let id = r.json()["round_id"].clone();
+            let fb = srv.post(
+                "/v1/feedback",
+                &json!({"round_id": id, "labels": ["brake"]}),
+            );
+            assert_eq!(fb.status, 200);
+        }
+    }
+    let before = srv.state();
+    srv.sigterm();
+    let status = srv.child.wait().unwrap();
+    assert!(status.success(), "{status:?}");
+    let snaps: Vec<_> = std::fs::read_dir(dir.join("snapshots"))
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(snaps, ["snapshot-000000000006-000000000012.bin"]);
+
+    let srv = Server::start(&dir, &args, &[("RUST_LOG", "info")]);
+    assert_eq!(srv.state(), before);
+    let log = std::fs::read_to_string(dir.join("server.log")).unwrap();
+    // Without the terminal colours around the field names.
+    let mut plain = String::new();
+    let mut chars = log.chars();
+    while let Some(c) = chars.next() {
+        if c == '\u{1b}' {
+            for d in chars.by_ref() {
+                if d == 'm' {
+                    break;
+                }
+            }
+        } else {
+            plain.push(c);
+        }
+    }
+    assert!(
+        plain.contains("tail_rounds=0 tail_feedback=0"),
+        "the start replayed events: {log}"
+    );
+    drop(srv);
+    std::fs::remove_dir_all(dir.join("snapshots")).unwrap();
+    let srv = Server::start(&dir, &args, &[]);
+    assert_eq!(srv.state(), before, "the full replay reaches another state");
+}
