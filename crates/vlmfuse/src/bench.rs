@@ -97,8 +97,10 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
             }
         }
         let data = tmp.path().join("data");
-        let mut cfg = crate::Config::default();
-        cfg.reporters = names.clone();
+        let mut cfg = crate::Config {
+            reporters: names.clone(),
+            ..Default::default()
+        };
         cfg.fusion.method = args.method;
         cfg.server.data_dir = data.clone();
         let t = Instant::now();
@@ -126,8 +128,7 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
         let mut synth = Synth::new(8, args.dim, args.reporters, l);
         let mut lat = Vec::with_capacity(args.rounds);
         let mut eng = Vec::with_capacity(args.rounds);
-        let mut seq = rep.next_seq;
-        for t in 0..args.rounds {
+        for (t, seq) in (0..args.rounds).zip(rep.next_seq..) {
             let s = synth.round();
             let t0 = Instant::now();
             let mut in_store = std::time::Duration::ZERO;
@@ -170,7 +171,6 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
             let total = t0.elapsed();
             lat.push(total.as_secs_f64() * 1e3);
             eng.push((total - in_store).as_secs_f64() * 1e3);
-            seq += 1;
         }
         lat.sort_by(f64::total_cmp);
         eng.sort_by(f64::total_cmp);
