@@ -63,7 +63,7 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
     let l = ontology.len();
     let names = reporter_names(args.reporters);
     println!(
-        "state at scale, method {}, d = {}, n = {}, one round in ten labelled; restart = open +          rebuild of the engine (the service's start before it listens)",
+        "state at scale, method {}, d = {}, n = {}, one round in ten labelled; restart = open + rebuild of the engine (the service's start before it listens)",
         args.method.name(),
         args.dim,
         args.reporters
@@ -112,13 +112,17 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
                 .filter_map(|p| std::fs::metadata(p).ok())
                 .map(|m| m.len())
                 .sum();
-        let fresh = || Engine::new(cfg.fusion.clone(), ontology.clone(), names.clone());
+        let fresh = || Engine::new(cfg.fusion.clone(), cfg.ontology.clone(), names.clone());
         let t = Instant::now();
         let mut store = Store::open(&data)?;
         let mut engine = fresh()?;
         let rep = store.load_engine(&mut engine)?;
         let from_snapshot_s = t.elapsed().as_secs_f64();
-        anyhow::ensure!(rep.snapshot.is_some(), "the import left no usable snapshot");
+        anyhow::ensure!(
+            rep.snapshot.is_some(),
+            "the import left no usable snapshot: {:?}",
+            rep.skipped_snapshots
+        );
         let t = Instant::now();
         let mut full = fresh()?;
         store.load_engine_full(&mut full)?;
