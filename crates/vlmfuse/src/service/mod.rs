@@ -277,6 +277,10 @@ impl Service {
             Duration::from_secs_f64(cfg.limits.idempotency_ttl_s),
             writer::SnapshotPolicy {
                 every: cfg.server.snapshot_every,
+                loaded: loaded
+                    .snapshot
+                    .as_ref()
+                    .map_or((0, 0), |u| (u.anchor.rounds, u.anchor.labelled)),
                 interval: (cfg.server.snapshot_interval_s > 0.0)
                     .then(|| Duration::from_secs_f64(cfg.server.snapshot_interval_s)),
                 keep: cfg.server.snapshot_keep,

@@ -167,6 +167,9 @@ impl Keys {
 pub struct SnapshotPolicy {
     /// Events after which a snapshot is due; 0: never by count.
     pub every: u64,
+    /// `(rounds, labelled)` of the snapshot the start loaded, `(0, 0)` without one: the
+    /// events replayed at the start count toward the next snapshot, so a long replay is the last.
+    pub loaded: (u64, u64),
     /// Time after which newer events are snapshotted anyway; `None`: never by time.
     pub interval: Option<std::time::Duration>,
     pub keep: usize,
@@ -182,11 +185,10 @@ struct Snapshots {
 }
 
 impl Snapshots {
-    fn new(policy: SnapshotPolicy, shared: &Shared) -> Self {
-        let labelled = shared.engine.blocking_read().labelled();
+    fn new(policy: SnapshotPolicy) -> Self {
         Self {
             policy,
-            last: (shared.rounds.load(Ordering::SeqCst), labelled),
+            last: policy.loaded,
             last_at: Instant::now(),
             in_flight: None,
         }
@@ -301,7 +303,7 @@ pub fn spawn(
                     last_prune: None,
                 };
                 metrics.scope(|| {
-                    let mut snaps = Snapshots::new(snapshots, &shared);
+                    let mut snaps = Snapshots::new(snapshots);
                     run(&mut store, &shared, &mut keys, &mut snaps, rx);
                     // The queue is drained: a snapshot of the final state makes the next start
                     // replay nothing.

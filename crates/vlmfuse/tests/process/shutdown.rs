@@ -113,6 +113,17 @@ fn sigterm_leaves_a_snapshot_of_the_final_state() {
     );
     drop(srv);
     std::fs::remove_dir_all(dir.join("snapshots")).unwrap();
-    let srv = Server::start(&dir, &args, &[]);
+    // A start that replayed at least `snapshot_every` events snapshots them at once (the writer
+    // wakes once a second), without waiting for new ones.
+    let srv = Server::start(&dir, &["--reporters", "a,b", "--snapshot-every", "5"], &[]);
     assert_eq!(srv.state(), before, "the full replay reaches another state");
+    let want = dir.join("snapshots/snapshot-000000000006-000000000012.bin");
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    while !want.exists() {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "no snapshot after the full replay"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
 }
