@@ -178,6 +178,8 @@ pub struct SnapshotPolicy {
 /// The writer's snapshot schedule: where it stands, and the one write that may be in flight.
 struct Snapshots {
     policy: SnapshotPolicy,
+    /// The service's recorder, put in force on the snapshot thread too (it is thread-local).
+    metrics: Metrics,
     /// `(rounds, labelled)` of the last snapshot (or of the start: the loaded state).
     last: (u64, u64),
     last_at: Instant,
@@ -185,9 +187,10 @@ struct Snapshots {
 }
 
 impl Snapshots {
-    fn new(policy: SnapshotPolicy) -> Self {
+    fn new(policy: SnapshotPolicy, metrics: Metrics) -> Self {
         Self {
             policy,
+            metrics,
             last: policy.loaded,
             last_at: Instant::now(),
             in_flight: None,
@@ -276,9 +279,10 @@ impl Snapshots {
             job();
             return;
         }
+        let metrics = self.metrics.clone();
         match std::thread::Builder::new()
             .name("vlmfuse-snapshot".into())
-            .spawn(job)
+            .spawn(move || metrics.scope(job))
         {
             Ok(h) => self.in_flight = Some(h),
             Err(e) => tracing::warn!("cannot start the snapshot thread: {e}"),
@@ -303,7 +307,7 @@ pub fn spawn(
                     last_prune: None,
                 };
                 metrics.scope(|| {
-                    let mut snaps = Snapshots::new(snapshots);
+                    let mut snaps = Snapshots::new(snapshots, metrics.clone());
                     run(&mut store, &shared, &mut keys, &mut snaps, rx);
                     // The queue is drained: a snapshot of the final state makes the next start
                     // replay nothing.

@@ -126,4 +126,17 @@ fn sigterm_leaves_a_snapshot_of_the_final_state() {
         );
         std::thread::sleep(Duration::from_millis(50));
     }
+    // Counted by the service's recorder, from the snapshot thread.
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    loop {
+        let m = String::from_utf8_lossy(&srv.get("/metrics").body).into_owned();
+        if m.lines().any(|l| l == "vlmfuse_snapshots_total 1") {
+            break;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "no vlmfuse_snapshots_total 1 in /metrics:\n{m}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
 }
