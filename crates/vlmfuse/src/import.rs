@@ -7,8 +7,9 @@
 //!
 //! The file is read twice: first every line is checked (JSON, reporters, labels, context
 //! dimension) and any bad line is reported with its number, storing nothing; then it is
-//! imported in chunks of one transaction each. A failure during the second pass (a full disk)
-//! rolls the directory back to where it was, so a file either imports whole or not at all.
+//! imported in chunks of one transaction each. A failure during the second pass (a full disk,
+//! Ctrl-C or SIGTERM) rolls the directory back to where it was, so a file either imports whole
+//! or not at all. (`kill -9` cannot be caught: it leaves the chunks committed so far.)
 
 use crate::config::{Config, ServeArgs};
 use anyhow::{bail, Context};
@@ -16,6 +17,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use std::fs::File;
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::Instant;
 use vlmfuse_fusion::{Engine, LabelledRound, RoundRecord};
 use vlmfuse_store::{snapshot, Identity, NewRound, Store, StoredFeedback};
@@ -80,10 +83,33 @@ fn lines(
         .filter(|(_, _, l)| l.as_ref().map_or(true, |s| !s.trim().is_empty())))
 }
 
+/// Set by SIGINT or SIGTERM while an import runs; the import stops at the next round and rolls
+/// back.
+fn stop_flag() -> anyhow::Result<(Arc<AtomicBool>, Vec<signal_hook::SigId>)> {
+    let flag = Arc::new(AtomicBool::new(false));
+    let mut ids = Vec::new();
+    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        ids.push(signal_hook::flag::register(sig, flag.clone()).context("signal handler")?);
+    }
+    Ok((flag, ids))
+}
+
 pub fn run(args: ImportArgs) -> anyhow::Result<()> {
     let cfg = Config::load(&args.serve)?;
     let t = Instant::now();
-    let done = import(&cfg, &args.file, args.chunk, args.max_errors, args.quiet)?;
+    let (stop, ids) = stop_flag()?;
+    let res = import_until(
+        &cfg,
+        &args.file,
+        args.chunk,
+        args.max_errors,
+        args.quiet,
+        &stop,
+    );
+    for id in ids {
+        signal_hook::low_level::unregister(id);
+    }
+    let done = res?;
     let secs = t.elapsed().as_secs_f64();
     eprintln!(
         "imported {} rounds ({} labelled) from {} into {} in {secs:.1} s ({:.0} rounds/s)",
@@ -103,6 +129,18 @@ pub fn import(
     chunk: usize,
     max_errors: usize,
     quiet: bool,
+) -> anyhow::Result<Imported> {
+    import_until(cfg, file, chunk, max_errors, quiet, &AtomicBool::new(false))
+}
+
+/// [`import`] that gives up, storing nothing, once `stop` is set.
+pub fn import_until(
+    cfg: &Config,
+    file: &Path,
+    chunk: usize,
+    max_errors: usize,
+    quiet: bool,
+    stop: &AtomicBool,
 ) -> anyhow::Result<Imported> {
     if chunk == 0 {
         bail!("--chunk must be at least 1");
@@ -134,6 +172,9 @@ pub fn import(
     let mut good = 0u64;
     for (line, read, text) in lines(file)? {
         b.set_position(read);
+        if stop.load(Ordering::Relaxed) {
+            bail!("interrupted while checking the file; nothing was imported");
+        }
         let text = text.with_context(|| format!("{}: line {line}", file.display()))?;
         let res = serde_json::from_str::<RoundRecord>(&text)
             .map_err(|e| e.to_string())
@@ -178,7 +219,7 @@ pub fn import(
     // Pass 2: the events, in chunks of one transaction.
     let start = store.anchor()?;
     let start_w = engine.reputations().to_vec();
-    let res = ingest(&mut store, &mut engine, file, chunk, quiet, total);
+    let res = ingest(&mut store, &mut engine, file, chunk, quiet, total, stop);
     match res {
         Ok(done) => {
             let anchor = store.anchor()?;
@@ -209,6 +250,7 @@ fn ingest(
     chunk: usize,
     quiet: bool,
     total: u64,
+    stop: &AtomicBool,
 ) -> anyhow::Result<Imported> {
     let b = bar(quiet, total, "importing");
     let mut seq = store.anchor()?.rounds;
@@ -221,6 +263,9 @@ fn ingest(
     };
     let name = file.display().to_string();
     for (line, read, text) in lines(file)? {
+        if stop.load(Ordering::Relaxed) {
+            bail!("interrupted at line {line}");
+        }
         let text = text.with_context(|| format!("{name}: line {line}"))?;
         let rec: RoundRecord =
             serde_json::from_str(&text).with_context(|| format!("{name}: line {line}"))?;

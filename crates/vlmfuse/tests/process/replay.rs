@@ -392,3 +392,52 @@ fn an_imported_history_continues_as_eval_does() {
     assert!(replay(&srv.addr, &rounds[cut..], &mut prog));
     compare_with_eval(&prog.seen, &emitted[cut..]);
 }
+
+/// Ctrl-C in the middle of an import (chunks already committed) rolls the directory back: a
+/// file imports whole or not at all.
+#[test]
+fn an_interrupted_import_stores_nothing() {
+    let tmp = tempfile::tempdir().unwrap();
+    let rounds = generate_rounds(6000, 32, 9);
+    let reporters = sorted_reporters(&rounds).join(",");
+    let file = tmp.path().join("rounds.jsonl");
+    write_jsonl(&file, &rounds);
+    let dir = tmp.path().join("data");
+    let mut child = Command::new(BIN)
+        .args(["import", file.to_str().unwrap(), "--quiet", "--chunk", "50"])
+        .args(["--reporters", &reporters, "--data-dir"])
+        .arg(&dir)
+        .env_remove("VLMFUSE_CONFIG")
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stored = |dir: &Path| {
+        vlmfuse_store::Store::open_read_only(dir)
+            .and_then(|s| s.counts())
+            .map_or(0, |c| c.0)
+    };
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    while stored(&dir) == 0 {
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the import ended before a chunk was seen"
+        );
+        assert!(std::time::Instant::now() < deadline, "no chunk committed");
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    let mid = stored(&dir);
+    Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .unwrap();
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success(),
+        "the import finished before the interrupt"
+    );
+    assert!(err.contains("interrupted at line"), "{err}");
+    assert!(err.contains("as it was before"), "{err}");
+    assert!(mid > 0 && (mid as usize) < rounds.len());
+    assert_eq!(stored(&dir), 0, "{mid} rounds were committed and stayed");
+}
