@@ -867,6 +867,50 @@ impl Store {
         Ok(None)
     }
 
+    /// The snapshot at `path` as an engine built like `fresh` (fixed to the database's
+    /// dimension) with its anchor and path, or why it cannot stand in for its events. The
+    /// header's checks (method, anchors) come before the engine is decoded.
+    #[allow(clippy::type_complexity)]
+    fn snapshot_usable(
+        &self,
+        path: &Path,
+        fresh: &Engine,
+        next_seq: u64,
+    ) -> Result<Result<(Engine, snapshot::Anchor, PathBuf), String>, StoreError> {
+        let opened = match snapshot::open(path) {
+            Ok(o) => o,
+            Err(why) => return Ok(Err(why)),
+        };
+        let h = &opened.header;
+        if h.method != fresh.method().name() {
+            return Ok(Err(format!(
+                "written under method {:?}, the engine runs {:?}",
+                h.method,
+                fresh.method().name()
+            )));
+        }
+        if let Some(why) = self.anchor_mismatch(&h.anchor, next_seq)? {
+            return Ok(Err(why));
+        }
+        let mut snap = match opened.engine() {
+            Ok(e) => e,
+            Err(why) => return Ok(Err(why)),
+        };
+        if !snap.same_setup(fresh) {
+            return Ok(Err(
+                "written under another [fusion] configuration, ontology or reporter list".into(),
+            ));
+        }
+        match (fresh.dim(), snap.dim()) {
+            (Some(d), Some(e)) if d != e => {
+                return Ok(Err("written for another context dimension".into()))
+            }
+            (Some(d), None) => snap.fix_dim(d)?,
+            _ => {}
+        }
+        Ok(Ok((snap, opened.header.anchor.clone(), path.to_path_buf())))
+    }
+
     /// The newest snapshot that can stand in for its events, as an engine built like `fresh`
     /// (fixed to the database's dimension), with its anchor and path. Unusable ones go to
     /// `skipped` with the reason and a warning.
@@ -879,32 +923,9 @@ impl Store {
         let dir = snapshot::dir_of(self.dir());
         snapshot::remove_leftovers(&dir);
         for path in snapshot::list(&dir) {
-            let why = match snapshot::read(&path) {
+            let why = match self.snapshot_usable(&path, fresh, next_seq)? {
+                Ok(found) => return Ok(Some(found)),
                 Err(why) => why,
-                Ok((h, _)) if h.method != fresh.method().name() => format!(
-                    "written under method {:?}, the engine runs {:?}",
-                    h.method,
-                    fresh.method().name()
-                ),
-                Ok((_, snap)) if !snap.same_setup(fresh) => {
-                    "written under another [fusion] configuration, ontology or reporter list".into()
-                }
-                Ok((_, snap))
-                    if fresh.dim().is_some()
-                        && snap.dim().is_some()
-                        && snap.dim() != fresh.dim() =>
-                {
-                    "written for another context dimension".into()
-                }
-                Ok((h, mut snap)) => match self.anchor_mismatch(&h.anchor, next_seq)? {
-                    Some(why) => why,
-                    None => {
-                        if let (Some(d), None) = (fresh.dim(), snap.dim()) {
-                            snap.fix_dim(d)?;
-                        }
-                        return Ok(Some((snap, h.anchor, path)));
-                    }
-                },
             };
             tracing::warn!(path = %path.display(), "snapshot not used: {why}");
             skipped.push((path, why));
@@ -1108,11 +1129,11 @@ impl Store {
         let tx = self
             .conn
             .transaction_with_behavior(TransactionBehavior::Immediate)?;
+        // Feedback on a round after `to` came after `to` too: the labelling order covers it.
         tx.execute(
             "DELETE FROM feedback WHERE labelled_order >= ?1",
             [to.labelled as i64],
         )?;
-        tx.execute("DELETE FROM feedback WHERE seq >= ?1", [to.rounds as i64])?;
         tx.execute(
             "DELETE FROM round_detail WHERE seq >= ?1",
             [to.rounds as i64],

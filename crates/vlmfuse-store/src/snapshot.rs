@@ -213,9 +213,19 @@ pub fn remove_leftovers(dir: &Path) {
     }
 }
 
-/// Reads a snapshot: its header and engine, or why it cannot be used (before any check that
-/// needs the database: those are the caller's).
-pub fn read(path: &Path) -> Result<(Header, Engine), String> {
+/// A snapshot file whose checksum, format and version checked out, its engine not yet decoded:
+/// the checks on its header come first, so that a snapshot of another method or history is
+/// refused without decoding an engine of possibly gigabytes.
+pub struct Opened {
+    map: memmap2::Mmap,
+    /// Where the engine's bytes start.
+    at: usize,
+    pub header: Header,
+}
+
+/// Opens a snapshot: its header, or why it cannot be used (before any check that needs the
+/// database or the engine: those are the caller's).
+pub fn open(path: &Path) -> Result<Opened, String> {
     let file = File::open(path).map_err(|e| format!("cannot open: {e}"))?;
     // SAFETY: the file is opened read-only and only this process writes the snapshot directory
     // (it holds the data directory's lock); snapshots are never modified in place, only
@@ -254,13 +264,32 @@ pub fn read(path: &Path) -> Result<(Header, Engine), String> {
             env!("CARGO_PKG_VERSION")
         ));
     }
-    let (engine, rest): (Engine, &[u8]) = postcard::take_from_bytes(&body[at + 4 + hlen..])
-        .map_err(|e| format!("unreadable engine: {e}"))?;
-    if !rest.is_empty() {
-        return Err(format!("{} bytes after the engine", rest.len()));
+    Ok(Opened {
+        map,
+        at: at + 4 + hlen,
+        header,
+    })
+}
+
+impl Opened {
+    /// Decodes the engine.
+    pub fn engine(&self) -> Result<Engine, String> {
+        let body = &self.map[..self.map.len() - 4];
+        let (engine, rest): (Engine, &[u8]) = postcard::take_from_bytes(&body[self.at..])
+            .map_err(|e| format!("unreadable engine: {e}"))?;
+        if !rest.is_empty() {
+            return Err(format!("{} bytes after the engine", rest.len()));
+        }
+        if engine.labelled() != self.header.anchor.labelled {
+            return Err("the engine's labelled count differs from its header".into());
+        }
+        Ok(engine)
     }
-    if engine.labelled() != header.anchor.labelled {
-        return Err("the engine's labelled count differs from its header".into());
-    }
-    Ok((header, engine))
+}
+
+/// Reads a snapshot whole: its header and engine ([`open`], then [`Opened::engine`]).
+pub fn read(path: &Path) -> Result<(Header, Engine), String> {
+    let o = open(path)?;
+    let engine = o.engine()?;
+    Ok((o.header, engine))
 }

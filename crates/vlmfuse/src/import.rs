@@ -219,7 +219,16 @@ pub fn import_until(
     // Pass 2: the events, in chunks of one transaction.
     let start = store.anchor()?;
     let start_w = engine.reputations().to_vec();
-    let res = ingest(&mut store, &mut engine, file, chunk, quiet, total, stop);
+    let res = ingest(
+        &mut store,
+        &mut engine,
+        start.rounds,
+        file,
+        chunk,
+        quiet,
+        total,
+        stop,
+    );
     match res {
         Ok(done) => {
             let anchor = store.anchor()?;
@@ -243,9 +252,12 @@ pub fn import_until(
     }
 }
 
+/// Pass 2: the file's rounds as events from `seq` `first` on.
+#[allow(clippy::too_many_arguments)]
 fn ingest(
     store: &mut Store,
     engine: &mut Engine,
+    mut first: u64,
     file: &Path,
     chunk: usize,
     quiet: bool,
@@ -253,8 +265,7 @@ fn ingest(
     stop: &AtomicBool,
 ) -> anyhow::Result<Imported> {
     let b = bar(quiet, total, "importing");
-    let mut seq = store.anchor()?.rounds;
-    let mut first = seq;
+    let mut seq = first;
     let mut rounds: Vec<NewRound> = Vec::with_capacity(chunk);
     let mut fbs: Vec<StoredFeedback> = Vec::new();
     let mut done = Imported {
