@@ -4,7 +4,7 @@
 //! ```text
 //! cargo run --release -p vlmfuse-labeler \
 //!     --example labeler_eval -- [--tune] [--only embedding,onnx,rules,remote,gguf]
-//!     [--gguf PATH] [--gguf-test N] [--threads N] [--json FILE]
+//!     [--gguf PATH] [--gguf-test N] [--threads N] [--json FILE] [--data FILE]
 //! ```
 //! Answers are labelled in rounds of five (`ROUND_ANSWERS`), one `label_batch` call per round as
 //! `/v1/infer` makes it, and the label stage's time is reported per round (median and p95, after
@@ -136,7 +136,9 @@ fn main() -> anyhow::Result<()> {
 
     let assets = find_assets()?;
     let ontology = Ontology::default_driving();
-    let data = load_dataset(&default_dataset_path())?;
+    // `--data FILE`: another labelled set in the same format (e.g. answers_styles.jsonl).
+    let data_path = arg_value(&args, "--data").map_or_else(default_dataset_path, Into::into);
+    let data = load_dataset(&data_path)?;
     let (train, test): (Vec<&Example>, Vec<&Example>) =
         data.iter().partition(|e| e.split == "train");
     let truth = |xs: &[&Example]| -> anyhow::Result<Vec<Vec<bool>>> {
@@ -147,7 +149,8 @@ fn main() -> anyhow::Result<()> {
     };
     let (train_y, test_y) = (truth(&train)?, truth(&test)?);
     println!(
-        "data set: {} train / {} test answers, {} labels",
+        "data set {}: {} train / {} test answers, {} labels",
+        data_path.display(),
         train.len(),
         test.len(),
         ontology.len()

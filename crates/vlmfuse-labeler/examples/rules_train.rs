@@ -2,7 +2,7 @@
 //! are designed without looking at the test split.
 //!
 //! ```text
-//! cargo run -p vlmfuse-labeler --example rules_train -- [--errors] [--label ID]
+//! cargo run -p vlmfuse-labeler --example rules_train -- [--errors] [--label ID] [--data FILE]
 //! ```
 
 use vlmfuse_labeler::{rules, text, Ontology};
@@ -18,7 +18,12 @@ fn main() {
         .position(|a| a == "--label")
         .and_then(|i| args.get(i + 1).cloned());
     let onto = Ontology::default_driving();
-    let data = load_dataset(&default_dataset_path()).unwrap();
+    let data_path = args
+        .iter()
+        .position(|a| a == "--data")
+        .and_then(|i| args.get(i + 1))
+        .map_or_else(default_dataset_path, Into::into);
+    let data = load_dataset(&data_path).unwrap();
     let hand = args.iter().any(|a| a == "--hand");
     let train: Vec<_> = data
         .iter()

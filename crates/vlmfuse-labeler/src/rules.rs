@@ -248,6 +248,7 @@ const DOUBLE_NEG: &[&str] = &[
     "no doubt",
     "not be afraid",
     "nothing wrong",
+    "no harm",
 ];
 /// After a mention, in its phrase: it is not needed.
 const POST_NEG: &[&str] = &[
@@ -858,6 +859,15 @@ fn hedged(s: &Sentence, a: usize, b: usize) -> bool {
         ) {
             return true;
         }
+        // Soft advice addressed to the driver is a suggestion, not a possibility (G1): "you
+        // could speed up a little", "you might as well pull out". A trailing condition still
+        // hedges it (checked below).
+        if (w == "could" && k > 0 && s.w(k - 1) == "you"
+            && !any_seq_at(s, k + 1, &["need", "have", "be", "also", "then", "possibly", "maybe"]))
+            || any_seq_at(s, k, &["might as well", "may as well"])
+        {
+            continue;
+        }
         if MODALS.contains(&w) {
             let governs = any_seq_at(
                 s,
@@ -1065,7 +1075,9 @@ fn build() -> Vec<LabelRules> {
                 r"(^|[,:] |then |and |now |next |so )(hard )?{d} (at|onto|into|on to) (the|a|this|that)\b"
             )),
             a(&format!(r"\bturn : {d}\b")),
-            a(&format!(r"\b(indicate|signal)(ling|ing)? {d} and turn\b")),
+            a(&format!(
+                r"\b(indicat(e|es|ing)|signal(s|led|ling|ing)?) {d} and turn(s|ing)?\b"
+            )),
             a(&format!(
                 r"\bturn(s|ing)? (in|off )?(into|onto) (the |a )?[a-z]+( [a-z]+)? on the {d}\b"
             )),
@@ -1102,11 +1114,11 @@ fn build() -> Vec<LabelRules> {
             a(r"\bapply(ing)? (the )?brakes?\b"),
             a(r"\b(hit|tap|touch|dab|press|use) (on )?(the )?brakes?( pedal)?\b"),
             a(r"\bslow(s|ing)? (it |things |the car |the vehicle |us |your speed |way |right |well )?down\b"),
-            a(r"\bslow(ing)? (to|for|gradually|slightly|a little|a bit|early|gently|smoothly|progressively|significantly|considerably|steadily|right|now|sharply|further|more)\b"),
+            a(r"\bslow(ing)? (to|for|before|and|gradually|slightly|a little|a bit|early|gently|smoothly|progressively|significantly|considerably|steadily|right|now|sharply|further|more)\b"),
             a(r"(^|[,:;] |then |and |so |now |please )slow( \.| ,| !|$| and| then)"),
             a(r"\bslower\b"),
             a(r"\bdecelerat(e|es|ing|ion)\b"),
-            a(r"\bease (off|up|back)\b"),
+            a(r"\beas(e|es|ing) (off|up|back)\b"),
             a(r"\blift (off|your foot)\b"),
             a(r"\b(come|get|take your foot) off the (gas|accelerator|throttle|power|pedal)\b"),
             a(r"\boff the (gas|accelerator|throttle)\b"),
@@ -1115,7 +1127,8 @@ fn build() -> Vec<LabelRules> {
             a(r"\b(drive|go|travel) more ([a-z]+ and )?slowly\b"),
             a(r"\b(speed|pace) (must |should |needs to )?(come|comes) (off|down)\b"),
             a(r"\btake (some |the )?speed off\b"),
-            a(r"\b(speed|pace) : (reduce|lower|decrease|slow|down|drop|reduced|lower it)\b"),
+            a(r"\b(speed|pace)( adjustment| change)? : (reduce|lower|decrease|slow|down|drop|reduced|lower it)\b"),
+            a(r"\b(drop|dropping|come|coming|get|getting|slow|slowing) (right )?(down )?to ([0-9]+|walking pace|a crawl)\b"),
             a(r"\b(drive|go|take it|move|travel|proceed|approach|going|driving) (a bit |a little |much |even |more )?(slower|more slowly)\b"),
             a(r"\bbring (the car |the vehicle |it |us )?(down )?to (a crawl|walking pace)\b"),
             a(r"\bbreak (gently|firmly|hard|now|early|smoothly|progressively)\b"),
@@ -1158,7 +1171,8 @@ fn build() -> Vec<LabelRules> {
             a(r"\bpull(ing)? (up|over)\b"),
             a(r"\b(remain|stay|staying|remaining|keep|be) (stationary|stopped|at a standstill|halted)\b"),
             a(r"\bmak(e|ing) (a |the )?(full |complete |short )?stop\b"),
-            a(r"\bhold(ing)? (at|behind) the (line|stop line|lights)\b"),
+            a(r"\bhold(ing)? (at|behind) the (line|stop line|give way line|yield line|lights)\b"),
+            a(r"\bpull(ing)? in (to|at|on) the (side|kerb|curb|verge|hard shoulder|shoulder|left|lay by)\b"),
             a(r"\bwait(ing)? (at|behind|before) (the |a )?(line|stop line|give way line|lights|light|signal|signals|red|crossing|zebra|crosswalk|junction|barrier|stop sign|white line|kerb|curb)\b"),
             a(r"\bwait(ing)? (for|until) (the )?(green|light to|lights to|signal to|light changes|lights change|light turns|lights turn)\b"),
             a(r"\b(action|manoeuvre|recommendation) : stop\b"),
@@ -1200,6 +1214,7 @@ fn build() -> Vec<LabelRules> {
             re(r"\b(brake|tail|head|street|hazard|fog|rear|blue|flashing|indicator|warning|dash|dashboard|interior|side|parking|reversing|running|brake) (light|lights)\b"),
             re(r"\b(the|its|their|his|her) (brake|tail|head|rear|fog|hazard|blue|street) lights\b"),
             re(r"\blights (flashing|on the|of the)\b"),
+            re(r"\b(keep|put|switch|turn|have|leave|with) (the |your |dipped |full )?(head)?lights on\b"),
             re(r"\blight (rain|traffic|snow|drizzle|breeze|shower|showers|wind|fog|mist|sleet|flow|vehicles)\b"),
             re(r"\bsignal(s|led|ling|ing)? (left|right|to|your|its|their|intentions|early|in good time|that)\b"),
             re(r"\b(turn|left|right|hand|indicator|your|its|their) signal\b"),
@@ -1240,7 +1255,7 @@ fn build() -> Vec<LabelRules> {
             sc(r"\b(pelican|puffin|toucan|school|raised|marked|signalised|signal controlled|signalized) crossings?\b"),
             sc(r"\b(lollipop (lady|man)|crossing guard)\b"),
             sc(r"\b(pedestrian|pedestrians|people|someone|walkers|children|kids|schoolchildren|man|woman|person|jogger|pedestrians who|pram|pushchair)\b[a-z ,]{0,60}\b(onto|on|at|near|to|towards|approaching|using|use|beside|off|from) (?P<m>(the|a) crossing)\b"),
-            sc(r"\b(?P<m>(the|a) crossing)\b[a-z ,]{0,40}\b(pedestrian|pedestrians|people|walkers|someone|children|kids)\b"),
+            sc(r"\b(?P<m>(the|a) crossing)\b[a-z ,]{0,40}\b(pedestrian|pedestrians|people|walkers|someone|children|kids|man|woman|person|child|boy|girl|couple|family|jogger|pram|pushchair)\b"),
         ],
         vetoes: vec![
             re(r"\b(level|railway|rail|train|informal|unmarked) crossing\b"),
@@ -1280,6 +1295,7 @@ fn build() -> Vec<LabelRules> {
             a(r"\b(following distance|gap|distance|headway) (should|must|needs to) be (at least )?(doubled|increased|longer|larger|bigger|kept|maintained)\b"),
             a(r"\b(following distance|following gap|gap|distance|keep distance|headway) : (increase|double|keep|maintain|large|larger|true|yes|extra)\b"),
             a(r"\b(two|three|four|2|3|4) seconds? (rule|gap)\b"),
+            a(r"\b(keep|keeping|stay|staying|hold|holding|sit|sitting|leave|leaving) (a |at least |about )?(two|three|four|2|3|4) ?(s|sec|secs|seconds|car lengths) (behind|back|off|from|gap|of space)\b"),
             a(r"\b(hang|drop|fall|hanging|dropping|falling|ease) back\b"),
             a(r"\bback off\b"),
             a(r"\b(stay|staying|keep|keeping|remain) (well |further |a bit |a little |a safe distance |far )?(back|behind)\b"),
@@ -1314,6 +1330,10 @@ fn build() -> Vec<LabelRules> {
             a(r"\bmake sure (the |that the )?(adjacent|next|target|left|right|other|neighbouring|neighboring) lane is (clear|free|empty)\b"),
             a(r"\bcheck (that )?(the )?lane (beside|next to|alongside) (you|us) is (clear|free|empty)\b"),
             a(r"\blife ?saver\b"),
+            a(r"\b(blind spot|blind spots|mirror|mirrors|shoulder|shoulder check|nearside|offside) : (check|checked|yes|true|look|clear first|check first)\b"),
+            // Looking beside the car for a rider coming up on the inside is the check itself,
+            // not a hedge: the watch cue is inside the match, so it does not hedge it.
+            a(r"\b(watch|watching|look|looking|check|checking|keep an eye)( out)? for ([a-z]+ ){0,2}(cyclist|cyclists|bike|bikes|motorbike|motorbikes|motorcyclist|motorcyclists|scooter|scooters|riders|rider|bikers)( [a-z]+){0,3} (on|up|down) (the|your|our) (inside|nearside|offside|blind side|near side)\b"),
         ],
         vetoes: vec![],
     });
@@ -1325,8 +1345,16 @@ fn build() -> Vec<LabelRules> {
             a(r"\b(reduce|lower) speed for (the )?weather\b"),
             a(r"\bspeed : (reduce|adjust|adapt|lower) \( ?weather\b"),
             a(r"\b(drive|driving|go|going|travel) slowly\b"),
+            // Compact forms: "icy, keep it slow", "hold back, the road is wet", "take it easy in
+            // the fog". They name no slowing, so they give no `brake`; without weather in the
+            // answer `weather_decision` drops them.
+            a(r"\bkeep(ing)? (it|things|the speed|your speed|speeds|speed|the pace|your pace) (slow|down|low|modest|sensible|gentle)\b"),
+            a(r"\b(take|taking) it (easy|slow|steady|gently|careful|carefully)\b"),
+            a(r"\bgo(ing)? easy\b"),
+            a(r"\bhold(ing)? back\b"),
+            a(r"\b(low|lower|reduced|gentle|sensible|cautious|modest) speed\b"),
         ],
-        vetoes: vec![],
+        vetoes: vec![re(r"\bhold(ing)? back (from|behind)\b")],
     });
     v.push(LabelRules {
         id: "yield_to_traffic",
@@ -1338,6 +1366,10 @@ fn build() -> Vec<LabelRules> {
             a(r"\b(allow|allowing) ([a-z]+ ){1,5}?to (pass|go|rejoin|merge|pull out|join|proceed|overtake|enter|exit|turn|come through|get through|clear|move off)\b"),
             a(r"\bwait(ing)? (for|until) (a |the |an )?(gap|break|space|clear gap|safe gap|opening|chance)\b"),
             a(r"\bwait(ing)? (for|until) (the |a |an |that |this |those |oncoming |other |any |all )?([a-z]+ ){0,2}(car|cars|vehicle|vehicles|truck|trucks|lorry|lorries|bus|buses|cyclist|cyclists|traffic|van|vans|motorcyclist|motorbike|bike|bikes|tram|coach|taxi|ambulance) (to |has |have )?(pass|passed|go|gone|clear|cleared|turn|exit|move|come through|get through|merge|pull out)\b"),
+            // Going only once other traffic has passed is giving way: "turn once the oncoming
+            // van has passed", "wait till the lorry clears, then go".
+            a(r"\b(once|after|when|until|till) (the |a |an |that |this |those |any |all )?(oncoming |other |approaching )?([a-z]+ ){0,2}(car|cars|vehicle|vehicles|truck|trucks|lorry|lorries|bus|buses|cyclist|cyclists|traffic|van|vans|motorcyclist|motorbike|bike|bikes|tram|coach|taxi|ambulance|fire engine|police car|tractor|rider|riders|horse|horses|suv|pickup|motorbikes|scooter) (has |have )?(passed|cleared|gone by|gone past|gone through|gone|come through|got through|clears|passes)\b"),
+            a(r"\bwait(ing)? (till|til) (a |the |an |that |this |oncoming |other )?([a-z]+ ){0,2}(car|cars|vehicle|vehicles|truck|trucks|lorry|lorries|bus|buses|cyclist|cyclists|traffic|van|vans|motorcyclist|motorbike|bike|bikes|tram|coach|taxi|ambulance|gap) \b"),
             a(r"\bmake way for\b"),
             a(r"\bpull(ing)? over (for|to let)\b"),
             a(r"\b(give_way|give way|yield) : (yes|true|to)\b"),
@@ -1361,10 +1393,13 @@ fn build() -> Vec<LabelRules> {
             a(r"\bcruis(e|ing)\b"),
             a(r"\bproceed(ing)?\b"),
             a(r"\bdrive on\b"),
+            // A bare "go" as the whole instruction ("light is green at the intersection, go").
+            a(r"(^|[,;:] |then |just |so |now )go( \.| !|$| ahead| now| on)"),
             a(r"\bgo straight( on| ahead| through| over| across)?\b"),
             a(r"\bkeep (going )?straight( on| ahead)?\b"),
             a(r"\b(maintain|maintaining|hold|holding|keep|keeping) (your |the |our |a |this )?(current |present |steady |same |constant )?(speed|course|pace|lane|heading|speed and lane|lane and speed)\b"),
             a(r"\bhold lane\b"),
+            a(r"\b(speed|pace|lane|plan|action) : (maintain|keep|hold|same|steady|unchanged|current|as is|no change)\b"),
             a(r"\b(stay|staying|remain) (in|on) (your |the |this |our )?(current |present )?(lane|course)\b"),
             a(r"\bstay the course\b"),
             a(r"\b(no|nothing) (special |particular |further |other |additional )?(action|change|changes|adjustment|intervention) (is |are )?(needed|required|necessary|called for)\b"),
@@ -1956,6 +1991,7 @@ pub fn decide(sents: &[Sentence], ms: &[Mention]) -> Vec<(&'static str, bool, Op
                 });
                 match first_pos(id) {
                     Some(i) if !changed && !idle => (true, Some(i)),
+                    None if !changed && !idle && caption_of_driving_on(sents, ms) => (true, None),
                     _ => (false, None),
                 }
             }
@@ -1967,6 +2003,48 @@ pub fn decide(sents: &[Sentence], ms: &[Mention]) -> Vec<(&'static str, bool, Op
         out.push((id, on.0, on.1));
     }
     out
+}
+
+/// The ego vehicle's own motion, as a caption states it ("ego car travelling along …",
+/// "driving down a quiet street", "we are cruising on the motorway").
+const EGO_MOTION: &[&str] = &[
+    r"^(dashcam|dash cam|video|clip|footage|view|scene|caption)?( :| of| shows| showing)?( the| an| a)? ?(ego|ego car|ego vehicle|our car|our vehicle|the camera car|camera car|dashcam car|car|vehicle)? ?(is |are )?(driving|travelling|traveling|cruising|heading|moving|rolling|making its way|proceeding|continuing|going) (along|down|up|through|on|towards|toward|past|over|across|into|in|at|straight|steadily|smoothly|normally|north|south|east|west)\b",
+    r"\b(ego|ego car|ego vehicle|the ego|our car|our vehicle|we|we re|i m|the camera car|dashcam car) (is |are |am |keeps |continues )?(driving|travelling|traveling|cruising|moving|heading|rolling|making (its|our) way|proceeding|continuing|going|following)\b",
+];
+
+/// What, in a caption, would call for a reaction: with one of these the caption recommends
+/// nothing, and carrying on is not what it describes (GUIDELINES, drive_as_normal, Captions).
+const CAPTION_HAZARD: &[&str] = &[
+    "red", "amber", "yellow light", "pedestrian", "pedestrians", "child", "children", "kids",
+    "cyclist", "cyclists", "crossing", "crosswalk", "zebra", "queue", "queuing", "stopped",
+    "stationary", "braking", "brake lights", "roadworks", "road works", "works", "cones",
+    "obstacle", "debris", "animal", "deer", "dog", "horse", "ambulance", "fire engine",
+    "police", "emergency", "siren", "accident", "crash", "collision", "pulling out",
+    "pulls out", "cuts in", "cutting in", "merging", "narrows", "closed", "ice", "icy", "snow",
+    "fog", "heavy rain", "flood", "flooded", "standing water", "hail", "sleet", "roundabout",
+    "stop sign", "give way", "yield", "runs", "running", "steps out", "stepping", "jaywalking",
+    "school", "bus stop", "tailgating", "swerving", "hazard", "warning", "speed bump",
+];
+
+/// An answer that only describes the clip, the ego vehicle driving on with nothing that calls
+/// for a change, lets that driving stand as `drive_as_normal` (GUIDELINES, Captions). Any
+/// action mention at all (even hedged or negated) makes it more than a caption.
+fn caption_of_driving_on(sents: &[Sentence], ms: &[Mention]) -> bool {
+    static RE: OnceLock<Vec<Regex>> = OnceLock::new();
+    let res = RE.get_or_init(|| EGO_MOTION.iter().map(|p| re(p)).collect());
+    if ms
+        .iter()
+        .any(|m| matches!(m.kind, Kind::Action | Kind::Inverted))
+    {
+        return false;
+    }
+    let advice = sents.iter().any(|s| {
+        (0..s.words.len()).any(|k| any_seq_at(s, k, STRONG_ADVICE))
+    });
+    let hazard = sents
+        .iter()
+        .any(|s| has_any(s, 0, s.words.len(), CAPTION_HAZARD));
+    !advice && !hazard && sents.iter().any(|s| res.iter().any(|r| r.is_match(&s.norm)))
 }
 
 /// G: adjust_speed_due_to_weather needs a speed change linked to the weather.
@@ -2043,7 +2121,7 @@ fn weather_decision(sents: &[Sentence], ms: &[Mention], any_neg: bool) -> Option
         let other_reason = after_reason.is_some_and(|k| {
             let e = phrase_end(s, k + 1).max(k + 3);
             has_any(s, k, e, HAZARDS) && !weather_in(s, k, e)
-        }) || has_any(s, 0, s.words.len(), HAZARDS) && !here;
+        }) || has_any(s, if crowded { m.b } else { 0 }, hi, HAZARDS) && !here;
         if here && !other_reason {
             return Some(i);
         }

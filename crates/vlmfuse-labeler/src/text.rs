@@ -172,7 +172,7 @@ const KEEP: &[&str] = &[
     "hopped", "spotted", "crossed", "cross", "gross", "press", "dress", "boss", "moss", "loss",
     "signs", "sign", "design", "assign", "mirrored", "error", "terror", "pass", "past", "paste",
     "pause", "place", "plane", "plan", "plain", "brain", "train", "drain", "grain", "strain",
-    "strait", "trait", "lights", "rights", "nights", "fights", "flights", "turns", "runs", "rings",
+    "trait", "lights", "rights", "nights", "fights", "flights", "turns", "runs", "rings",
     "roads", "loads", "toads", "goads", "lane", "land", "lend", "lens", "lent", "lift", "left",
     "gift", "rift", "shift", "drift", "swift", "thrift", "yields", "fields", "speedy", "spend",
     "spent", "spell", "spill", "still", "stall", "steal", "steel", "stool", "spool", "stock",
@@ -187,6 +187,8 @@ const KEEP: &[&str] = &[
     "steer", "sheer", "cheer", "stair", "stain", "stall", "start", "stark", "stars", "stare",
     "stove", "above", "glove", "grove", "drove", "droves", "shove", "shoved", "grader", "greener",
     "braid", "brain", "bread", "break", "breaking", "broken", "brakes", "breaks", "brave",
+    "easy", "easier", "easily", "more", "mode", "slower", "lower", "power", "tower", "faster",
+    "sower", "mower", "lover", "loser", "poser", "rider", "wider", "cider",
 ];
 
 fn lexicon() -> &'static (HashSet<&'static str>, Vec<&'static str>) {
@@ -327,6 +329,16 @@ const TYPOS: &[(&str, &str)] = &[
     ("yeild", "yield"),
     ("brak", "brake"),
     ("brke", "brake"),
+    // Spellings that are words elsewhere but mean the driving word here, and planner
+    // abbreviations.
+    ("strait", "straight"),
+    ("thru", "through"),
+    ("jct", "junction"),
+    ("jctn", "junction"),
+    ("veh", "vehicle"),
+    ("vehs", "vehicles"),
+    ("ped", "pedestrian"),
+    ("peds", "pedestrians"),
 ];
 
 /// Splits an answer into sentences (lines, `.`, `!`, `?`, `;`), flattening JSON and markdown.

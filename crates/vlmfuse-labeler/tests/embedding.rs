@@ -9,7 +9,7 @@ use vlmfuse_labeler::{
     Labeler, Ontology, PoolConfig, SentenceEncoder,
 };
 use vlmfuse_testkit_models::labeler_eval::{
-    default_dataset_path, f1_scores, load_dataset, to_mask,
+    default_dataset_path, f1_scores, load_dataset, styles_dataset_path, to_mask,
 };
 
 fn labeler() -> &'static Arc<EmbeddingLabeler> {
@@ -291,6 +291,113 @@ fn test_split_meets_the_targets() {
         let col = |m: &[Vec<bool>]| m.iter().map(|r| vec![r[k]]).collect::<Vec<_>>();
         let fk = f1_scores(&col(&truth), &col(&pred)).micro;
         assert!(fk >= 0.70, "{}: F1 {fk:.3} below 0.70", lab.id);
+    }
+}
+
+/// The kinds of miss the labeler-round-two issue reports in other answer styles (its
+/// paraphrases, and the guideline examples added for them).
+#[test]
+#[ignore = "needs assets: scripts/fetch-assets.sh"]
+fn other_styles_kinds_are_read_as_the_guidelines_say() {
+    labeler();
+    let cases: &[(&str, &[&str])] = &[
+        // A negated action next to an affirmed scene keeps the scene and the carry-on.
+        (
+            "not stopping here, light is green at the intersection, go.",
+            &["traffic_light_ahead", "junction_ahead", "drive_as_normal"],
+        ),
+        // Weather that motivates a change, stated compactly.
+        ("It's icy, keep it slow.", &["adjust_speed_due_to_weather"]),
+        ("Hold back, the road is wet.", &["adjust_speed_due_to_weather"]),
+        ("Road's icy - go easy.", &["adjust_speed_due_to_weather"]),
+        ("Wet road. Keep your speed steady.", &["drive_as_normal"]),
+        // Implicit yielding.
+        ("Turn once the oncoming van has passed.", &["yield_to_traffic"]),
+        (
+            "Hold at the give way line until the tractor has cleared.",
+            &["stop", "yield_to_traffic"],
+        ),
+        // Soft but real advice; true hedges stay hedges.
+        ("You could speed up a little.", &["accelerate"]),
+        ("Maybe you could slow down.", &[]),
+        ("You could brake a little earlier if it gets busy.", &[]),
+        ("No harm in easing off a touch for the cyclist.", &["brake"]),
+        // A list's last item.
+        (
+            "- Slow down for the junction.\n- Keep a safe gap.\n- Watch for cyclists on the inside.",
+            &[
+                "brake",
+                "junction_ahead",
+                "maintain_safe_distance",
+                "check_blind_spot",
+            ],
+        ),
+        // Captions: driving on is drive_as_normal; a hazard or a parked car is not.
+        (
+            "Dashcam: driving along a quiet two-lane road in daylight, light traffic.",
+            &["drive_as_normal"],
+        ),
+        ("A child runs into the road just ahead of the car.", &[]),
+        ("The ego car is parked outside a shop.", &[]),
+        // Planner abbreviations, key/value forms, typos that are words.
+        (
+            "Never overtake at this jct; go straight through.",
+            &["junction_ahead", "drive_as_normal"],
+        ),
+        (
+            "situation: bus lane ends\nblind_spot: check\naction: move into the left lane",
+            &["merge", "check_blind_spot"],
+        ),
+        (
+            "its snowing hard, make the car slower and keep more distnace from the bus",
+            &["brake", "maintain_safe_distance", "adjust_speed_due_to_weather"],
+        ),
+    ];
+    let onto = Ontology::default_driving();
+    let mut failures = Vec::new();
+    for (text, want) in cases {
+        let mut want: Vec<String> = want.iter().map(|s| s.to_string()).collect();
+        want.sort_by_key(|id| onto.index_of(id));
+        let got = labels(text);
+        if got != want {
+            failures.push(format!("{text:?}: got {got:?}, want {want:?}"));
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// Floors on the held-out part of the second set (other styles): the labeler-round-two issue's
+/// targets, micro-F1 >= 0.93, macro-F1 >= 0.90, no label below 0.75.
+#[test]
+#[ignore = "needs assets: scripts/fetch-assets.sh"]
+fn other_styles_test_split_meets_the_targets() {
+    let l = labeler();
+    let onto = Ontology::default_driving();
+    let data = load_dataset(&styles_dataset_path()).unwrap();
+    let test: Vec<_> = data.iter().filter(|e| e.split == "test").collect();
+    assert!(test.len() >= 150, "{} test answers", test.len());
+    let truth: Vec<_> = test
+        .iter()
+        .map(|e| to_mask(&onto, &e.labels).unwrap())
+        .collect();
+    let texts: Vec<&str> = test.iter().map(|e| e.text.as_str()).collect();
+    let mut pred = Vec::new();
+    for chunk in texts.chunks(5) {
+        for o in l.label_batch_blocking(chunk).unwrap() {
+            pred.push(to_mask(&onto, &o.labels).unwrap());
+        }
+    }
+    let f = f1_scores(&truth, &pred);
+    eprintln!(
+        "embedding labeler, other styles test split: micro-F1 {:.3}, macro-F1 {:.3}",
+        f.micro, f.macro_
+    );
+    assert!(f.micro >= 0.93, "micro-F1 {:.3} below 0.93", f.micro);
+    assert!(f.macro_ >= 0.90, "macro-F1 {:.3} below 0.90", f.macro_);
+    for (k, lab) in onto.labels().iter().enumerate() {
+        let col = |m: &[Vec<bool>]| m.iter().map(|r| vec![r[k]]).collect::<Vec<_>>();
+        let fk = f1_scores(&col(&truth), &col(&pred)).micro;
+        assert!(fk >= 0.75, "{}: F1 {fk:.3} below 0.75", lab.id);
     }
 }
 

@@ -71,6 +71,13 @@ pub fn default_dataset_path() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/labeler/answers.jsonl")
 }
 
+/// `tests/data/labeler/answers_styles.jsonl`: the second labelled set, in the styles other than
+/// the paper's three-step answer (terse, lists, JSON, captions, negation- and hedge-heavy,
+/// lower case with typos), by two more annotators.
+pub fn styles_dataset_path() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/labeler/answers_styles.jsonl")
+}
+
 pub fn load_dataset(path: &Path) -> anyhow::Result<Vec<Example>> {
     let text = std::fs::read_to_string(path).with_context(|| path.display().to_string())?;
     text.lines()

@@ -7,8 +7,8 @@ use vlmfuse_labeler::LabelerOutput;
 use vlmfuse_testkit::server::{FakeOpenAi, LABELER_LABELS, LABELER_MODEL};
 use vlmfuse_testkit_models::assets::{require_assets, AssetPaths};
 use vlmfuse_testkit_models::labeler_eval::{
-    default_dataset_path, eval_embedding_labeler, label_in_rounds, load_dataset, test_split,
-    ROUND_ANSWERS,
+    default_dataset_path, eval_embedding_labeler, label_in_rounds, load_dataset,
+    styles_dataset_path, test_split, ROUND_ANSWERS,
 };
 
 const SHIPPED: &str = include_str!("../../../../config/default.toml");
@@ -30,9 +30,16 @@ fn shipped_with_reporter(fake: &FakeOpenAi) -> String {
 #[ignore = "needs assets: scripts/fetch-assets.sh"]
 async fn the_served_labeler_is_the_evaluated_one() {
     let a = assets();
-    let data = load_dataset(&default_dataset_path()).unwrap();
-    let test = test_split(&data);
-    assert!(test.len() >= 250, "{} test answers", test.len());
+    // Both labelled sets' held-out parts: the first (mostly the paper's answer shape) and the
+    // second (other styles).
+    let first = load_dataset(&default_dataset_path()).unwrap();
+    let second = load_dataset(&styles_dataset_path()).unwrap();
+    assert!(test_split(&first).len() >= 250);
+    assert!(test_split(&second).len() >= 150);
+    let test: Vec<_> = test_split(&first)
+        .into_iter()
+        .chain(test_split(&second))
+        .collect();
     let texts: Vec<&str> = test.iter().map(|e| e.text.as_str()).collect();
     let evaluated = label_in_rounds(&eval_embedding_labeler(&a).unwrap(), &texts).unwrap();
 
