@@ -237,6 +237,18 @@ fn main() -> anyhow::Result<()> {
             round_ms: Some(ms),
             n: test.len(),
         });
+        // Per style: the paper's three-step shape against the others.
+        let mut styles: Vec<&str> = test.iter().map(|e| e.style.as_str()).collect();
+        styles.sort_unstable();
+        styles.dedup();
+        println!("served labeler per style (test split): style, answers, micro-F1, macro-F1");
+        for st in styles {
+            let idx: Vec<usize> = (0..test.len()).filter(|&i| test[i].style == st).collect();
+            let y: Vec<Vec<bool>> = idx.iter().map(|&i| test_y[i].clone()).collect();
+            let p: Vec<Vec<bool>> = idx.iter().map(|&i| pred[i].clone()).collect();
+            let f = f1_scores(&y, &p);
+            println!("  {st:<14} {:>4} {:.3} {:.3}", idx.len(), f.micro, f.macro_);
+        }
         engine_labels.push(("onnx".into(), labels));
     }
 

@@ -862,8 +862,14 @@ fn hedged(s: &Sentence, a: usize, b: usize) -> bool {
         // Soft advice addressed to the driver is a suggestion, not a possibility (G1): "you
         // could speed up a little", "you might as well pull out". A trailing condition still
         // hedges it (checked below).
-        if (w == "could" && k > 0 && s.w(k - 1) == "you"
-            && !any_seq_at(s, k + 1, &["need", "have", "be", "also", "then", "possibly", "maybe"]))
+        if (w == "could"
+            && k > 0
+            && s.w(k - 1) == "you"
+            && !any_seq_at(
+                s,
+                k + 1,
+                &["need", "have", "be", "also", "then", "possibly", "maybe"],
+            ))
             || any_seq_at(s, k, &["might as well", "may as well"])
         {
             continue;
@@ -2015,15 +2021,76 @@ const EGO_MOTION: &[&str] = &[
 /// What, in a caption, would call for a reaction: with one of these the caption recommends
 /// nothing, and carrying on is not what it describes (GUIDELINES, drive_as_normal, Captions).
 const CAPTION_HAZARD: &[&str] = &[
-    "red", "amber", "yellow light", "pedestrian", "pedestrians", "child", "children", "kids",
-    "cyclist", "cyclists", "crossing", "crosswalk", "zebra", "queue", "queuing", "stopped",
-    "stationary", "braking", "brake lights", "roadworks", "road works", "works", "cones",
-    "obstacle", "debris", "animal", "deer", "dog", "horse", "ambulance", "fire engine",
-    "police", "emergency", "siren", "accident", "crash", "collision", "pulling out",
-    "pulls out", "cuts in", "cutting in", "merging", "narrows", "closed", "ice", "icy", "snow",
-    "fog", "heavy rain", "flood", "flooded", "standing water", "hail", "sleet", "roundabout",
-    "stop sign", "give way", "yield", "runs", "running", "steps out", "stepping", "jaywalking",
-    "school", "bus stop", "tailgating", "swerving", "hazard", "warning", "speed bump",
+    "red",
+    "amber",
+    "yellow light",
+    "pedestrian",
+    "pedestrians",
+    "child",
+    "children",
+    "kids",
+    "cyclist",
+    "cyclists",
+    "crossing",
+    "crosswalk",
+    "zebra",
+    "queue",
+    "queuing",
+    "stopped",
+    "stationary",
+    "braking",
+    "brake lights",
+    "roadworks",
+    "road works",
+    "works",
+    "cones",
+    "obstacle",
+    "debris",
+    "animal",
+    "deer",
+    "dog",
+    "horse",
+    "ambulance",
+    "fire engine",
+    "police",
+    "emergency",
+    "siren",
+    "accident",
+    "crash",
+    "collision",
+    "pulling out",
+    "pulls out",
+    "cuts in",
+    "cutting in",
+    "merging",
+    "narrows",
+    "closed",
+    "ice",
+    "icy",
+    "snow",
+    "fog",
+    "heavy rain",
+    "flood",
+    "flooded",
+    "standing water",
+    "hail",
+    "sleet",
+    "roundabout",
+    "stop sign",
+    "give way",
+    "yield",
+    "runs",
+    "running",
+    "steps out",
+    "stepping",
+    "jaywalking",
+    "school",
+    "bus stop",
+    "tailgating",
+    "swerving",
+    "hazard",
+    "warning",
+    "speed bump",
 ];
 
 /// An answer that only describes the clip, the ego vehicle driving on with nothing that calls
@@ -2038,13 +2105,17 @@ fn caption_of_driving_on(sents: &[Sentence], ms: &[Mention]) -> bool {
     {
         return false;
     }
-    let advice = sents.iter().any(|s| {
-        (0..s.words.len()).any(|k| any_seq_at(s, k, STRONG_ADVICE))
-    });
+    let advice = sents
+        .iter()
+        .any(|s| (0..s.words.len()).any(|k| any_seq_at(s, k, STRONG_ADVICE)));
     let hazard = sents
         .iter()
         .any(|s| has_any(s, 0, s.words.len(), CAPTION_HAZARD));
-    !advice && !hazard && sents.iter().any(|s| res.iter().any(|r| r.is_match(&s.norm)))
+    !advice
+        && !hazard
+        && sents
+            .iter()
+            .any(|s| res.iter().any(|r| r.is_match(&s.norm)))
 }
 
 /// G: adjust_speed_due_to_weather needs a speed change linked to the weather.

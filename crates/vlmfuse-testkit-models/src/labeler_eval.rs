@@ -64,6 +64,9 @@ pub struct Example {
     pub split: String,
     pub text: String,
     pub labels: Vec<String>,
+    /// The answer's layout (`three_step`, `one_liner`, `json`, …): for per-style scores.
+    #[serde(default)]
+    pub style: String,
 }
 
 /// `tests/data/labeler/answers.jsonl` in this source tree.

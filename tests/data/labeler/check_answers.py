@@ -13,7 +13,9 @@ Checks (exit status 1 with every problem listed when one fails):
 Statistics: positives per label and split (and per source within train), label-set sizes, styles,
 voices, tags and traps per label.
 
-Usage: python3 tests/data/labeler/check_answers.py [--quiet]
+Usage: python3 tests/data/labeler/check_answers.py [--quiet] [--file answers_styles.jsonl]
+(--file: the second set, other answer styles; it has no template lines, and no text of it may
+repeat one of the first set.)
 Standard library only (Python >= 3.11 for tomllib).
 """
 import json
@@ -27,7 +29,8 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[2]
 REQUIRED = ("id", "split", "text", "labels", "source", "style")
-OPTIONAL = ("voice", "tags", "traps")
+OPTIONAL = ("voice", "tags", "traps", "author")
+SETS = ("answers.jsonl", "answers_styles.jsonl")
 
 
 def ontology():
@@ -41,10 +44,11 @@ def norm(text):
 
 def main():
     quiet = "--quiet" in sys.argv
+    name = sys.argv[sys.argv.index("--file") + 1] if "--file" in sys.argv else SETS[0]
     onto = ontology()
     errors = []
     rows = []
-    for n, line in enumerate((HERE / "answers.jsonl").read_text(encoding="utf-8").splitlines(), 1):
+    for n, line in enumerate((HERE / name).read_text(encoding="utf-8").splitlines(), 1):
         if not line.strip():
             continue
         try:
@@ -86,17 +90,23 @@ def main():
                 errors.append(f"{r['id']}: duplicate {what} of {seen[k]}")
             seen.setdefault(k, r["id"])
 
+    others = {norm(json.loads(l)["text"]): o for o in SETS if o != name
+              for l in (HERE / o).read_text(encoding="utf-8").splitlines() if l.strip()}
+    for r in rows:
+        if norm(r["text"]) in others:
+            errors.append(f"{r['id']}: the same text is in {others[norm(r['text'])]}")
+
     gen = subprocess.run([sys.executable, str(HERE / "gen_answers.py")], capture_output=True,
                          text=True, check=True).stdout.splitlines()
     templ = [{k: v for k, v in r.items() if k != "_line"} for r in rows if r["source"] == "template"]
-    gen_rows = [json.loads(l) for l in gen]
+    gen_rows = [json.loads(l) for l in gen] if name == SETS[0] else []
     if templ != gen_rows:
         diff = next((a["id"] for a, b in zip(templ, gen_rows) if a != b), "count")
         errors.append(f"template lines differ from gen_answers.py output (first at {diff}; "
                       f"{len(templ)} in file, {len(gen_rows)} generated)")
 
     if errors:
-        print("answers.jsonl: FAILED", file=sys.stderr)
+        print(f"{name}: FAILED", file=sys.stderr)
         for e in errors:
             print("  " + e, file=sys.stderr)
         sys.exit(1)
@@ -106,7 +116,7 @@ def main():
     hand_tr = [r for r in splits["train"] if r["source"] == "handwritten"]
     tmpl_tr = [r for r in splits["train"] if r["source"] == "template"]
     hand = [r for r in rows if r["source"] == "handwritten"]
-    print(f"answers.jsonl: OK, {len(rows)} answers: train {len(splits['train'])} "
+    print(f"{name}: OK, {len(rows)} answers: train {len(splits['train'])} "
           f"({len(tmpl_tr)} template + {len(hand_tr)} hand-written), test {len(splits['test'])} "
           f"(hand-written)")
     if quiet:
