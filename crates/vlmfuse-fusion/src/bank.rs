@@ -223,6 +223,58 @@ impl Bank {
         }
     }
 
+    /// Keeps the entries with `keep[pos]` true, in order (the bounded pool's eviction). The
+    /// whole-bank counts are recomputed from the kept entries.
+    pub fn retain(&mut self, keep: &[bool]) {
+        debug_assert_eq!(keep.len(), self.len());
+        let (d, n, l) = (self.dim, self.n, self.l);
+        let mut w = 0;
+        for r in 0..keep.len() {
+            if !keep[r] {
+                continue;
+            }
+            if w != r {
+                self.contexts.copy_within(r * d..(r + 1) * d, w * d);
+                self.mirror.copy_within(r * d..(r + 1) * d, w * d);
+                self.mirror_err[w] = self.mirror_err[r];
+                self.seqs[w] = self.seqs[r];
+                self.present.copy_within(r * n..(r + 1) * n, w * n);
+                self.reports
+                    .copy_within(r * n * l..(r + 1) * n * l, w * n * l);
+                self.truths.copy_within(r * l..(r + 1) * l, w * l);
+            }
+            w += 1;
+        }
+        self.contexts.truncate(w * d);
+        self.mirror.truncate(w * d);
+        self.mirror_err.truncate(w);
+        self.seqs.truncate(w);
+        self.present.truncate(w * n);
+        self.reports.truncate(w * n * l);
+        self.truths.truncate(w * l);
+        self.global = vec![[0; 4]; n * l];
+        self.global_y = vec![0; l];
+        for pos in 0..w {
+            for i in 0..n {
+                if !self.present(pos, i) {
+                    continue;
+                }
+                for k in 0..l {
+                    let cell = match (self.report(pos, i, k), self.truth(pos, k)) {
+                        (1, 1) => 0,
+                        (0, 1) => 1,
+                        (1, 0) => 2,
+                        _ => 3,
+                    };
+                    self.global[i * l + k][cell] += 1;
+                }
+            }
+            for k in 0..l {
+                self.global_y[k] += self.truth(pos, k) as u64;
+            }
+        }
+    }
+
     fn push_mirror(&mut self, x: &[f64]) {
         let mut err = 0.0f64;
         for &v in x {

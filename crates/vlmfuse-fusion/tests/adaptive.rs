@@ -198,3 +198,154 @@ fn given_cosines_infer_as_the_search_does() {
         }
     }
 }
+
+/// The bounded pool (`pool_max`): every labelled round stays, the unlabelled ones never exceed
+/// the cap plus its slack, the oldest leave first, the state is still a pure function of the
+/// events, and a round that left joins again when its label arrives late.
+#[test]
+fn the_pool_keeps_every_label_and_at_most_pool_max_unlabelled() {
+    let l = Ontology::paper().len();
+    let cap = 20;
+    let cfg = FusionConfig {
+        adaptive: vlmfuse_fusion::AdaptiveConfig {
+            pool_max: cap,
+            ..Default::default()
+        },
+        ..adaptive()
+    };
+    // Two rounds in three are labelled at once; the first 30 unlabelled ones get their labels at
+    // the end, long after they left the pool.
+    let events = stream(5, 600, l);
+    let late: Vec<usize> = (0..events.len())
+        .filter(|t| events[*t].3.is_none())
+        .take(30)
+        .collect();
+    let drive = |cfg: &FusionConfig| {
+        let mut e = Engine::new(cfg.clone(), Ontology::paper(), names()).unwrap();
+        let mut rounds = Vec::new();
+        let mut most = 0;
+        let mut labelled = 0;
+        for (t, (ctx, present, reports, y)) in events.iter().enumerate() {
+            let round = Round {
+                context: e.normalise_context(ctx).unwrap(),
+                present: present.clone(),
+                reports: reports.clone(),
+            };
+            let inf = e.infer(&round);
+            e.observe(t as u64, &round, &inf).unwrap();
+            if let Some(y) = y {
+                let o = e.credit(&inf.signals, &inf.w_used, y, t as u64);
+                let lr = LabelledRound {
+                    seq: t as u64,
+                    round: round.clone(),
+                    truth: y.clone(),
+                    q: inf.q.clone(),
+                };
+                e.apply(&lr, Some(&o)).unwrap();
+                labelled += 1;
+            }
+            let (pl, pu) = e.pool_sizes().unwrap();
+            assert_eq!(pl, labelled, "round {t}: every labelled round stays");
+            most = most.max(pu);
+            rounds.push((round, inf));
+        }
+        for &t in &late {
+            let (round, inf) = &rounds[t];
+            let truth: Vec<u8> = (0..l).map(|k| (k % 5 == t % 5) as u8).collect();
+            let o = e.credit(&inf.signals, &inf.w_used, &truth, t as u64);
+            let lr = LabelledRound {
+                seq: t as u64,
+                round: round.clone(),
+                truth,
+                q: inf.q.clone(),
+            };
+            e.apply(&lr, Some(&o)).unwrap();
+        }
+        (e, most, labelled)
+    };
+    let (a, most, labelled) = drive(&cfg);
+    assert!(
+        most <= cap + 1,
+        "{most} unlabelled entries with pool_max {cap}"
+    );
+    assert!(most >= cap, "the cap was reached: {most}");
+    // The late labels joined the pool as labelled entries.
+    let (pl, pu) = a.pool_sizes().unwrap();
+    assert_eq!(pl, labelled + late.len());
+    assert!(pu <= cap + 1);
+    // The same events give the same engine, byte for byte.
+    let (b, _, _) = drive(&cfg);
+    assert_eq!(
+        serde_json::to_string(&a).unwrap(),
+        serde_json::to_string(&b).unwrap()
+    );
+    // Unbounded, the pool keeps every unlabelled round.
+    let (_, most_all, _) = drive(&adaptive_unbounded());
+    assert_eq!(most_all, 200);
+}
+
+fn adaptive_unbounded() -> FusionConfig {
+    FusionConfig {
+        adaptive: vlmfuse_fusion::AdaptiveConfig {
+            pool_max: 0,
+            ..Default::default()
+        },
+        ..adaptive()
+    }
+}
+
+/// Every key path of a value's JSON form, sorted and deduplicated (array elements share their
+/// parent's path).
+fn key_paths(v: &serde_json::Value, at: &str, out: &mut Vec<String>) {
+    match v {
+        serde_json::Value::Object(m) => {
+            for (k, x) in m {
+                let p = format!("{at}/{k}");
+                out.push(p.clone());
+                key_paths(x, &p, out);
+            }
+        }
+        serde_json::Value::Array(xs) => {
+            for x in xs {
+                key_paths(x, at, out);
+            }
+        }
+        _ => {}
+    }
+}
+
+/// `ENGINE_LAYOUT` is bumped with every change to the engine's serialised fields: the field
+/// paths of trained engines under both methods are pinned here with the layout number, so a
+/// changed field fails this test until both are updated (and old snapshots are then ignored by
+/// the store instead of misread).
+#[test]
+fn layout_is_pinned() {
+    let l = Ontology::paper().len();
+    let events = stream(3, 60, l);
+    let mut paths = Vec::new();
+    for cfg in [
+        adaptive(),
+        FusionConfig {
+            method: Method::Paper,
+            ..FusionConfig::default()
+        },
+    ] {
+        let (e, _) = run(&cfg, &events);
+        key_paths(&serde_json::to_value(&e).unwrap(), "", &mut paths);
+    }
+    paths.sort();
+    paths.dedup();
+    // FNV-1a over the sorted paths.
+    let mut h: u64 = 0xcbf29ce484222325;
+    for b in paths.join("\n").bytes() {
+        h ^= b as u64;
+        h = h.wrapping_mul(0x100000001b3);
+    }
+    let pinned: (u32, u64) = (2, 0x520d3d7e8c969922);
+    assert_eq!(
+        (vlmfuse_fusion::ENGINE_LAYOUT, h),
+        pinned,
+        "the engine's fields changed: bump ENGINE_LAYOUT and pin the new digest {h:#x}\n{}",
+        paths.join("\n")
+    );
+}

@@ -630,6 +630,27 @@ fn a_snapshot_plus_its_tail_is_the_full_replay_bit_for_bit() {
     }
 }
 
+/// With the bounded pool evicting before and after the snapshot (`pool_max` far below the
+/// unlabelled rounds played), snapshot + tail is still the full replay, bit for bit.
+#[test]
+fn a_bounded_pool_snapshot_plus_its_tail_is_the_full_replay_bit_for_bit() {
+    let cfg = FusionConfig {
+        method: vlmfuse_fusion::Method::Adaptive,
+        adaptive: vlmfuse_fusion::AdaptiveConfig {
+            pool_max: 6,
+            ..Default::default()
+        },
+        ..FusionConfig::default()
+    };
+    let (dir, live) = with_snapshot_cfg(cfg.clone(), 80, 160);
+    let (_, unlabelled) = live.pool_sizes().unwrap();
+    assert!(unlabelled <= 7, "{unlabelled} unlabelled entries kept");
+    let (snap, rep, full) = load_both_cfg(dir.path(), cfg);
+    assert!(rep.snapshot.is_some(), "the snapshot is used");
+    assert_eq!(bytes(&snap), bytes(&full), "snapshot + tail != full replay");
+    assert_eq!(bytes(&snap), bytes(&live), "!= the engine that lived it");
+}
+
 #[test]
 fn a_snapshot_of_the_whole_history_leaves_no_tail() {
     let (dir, live) = with_snapshot(vlmfuse_fusion::Method::Adaptive, 60, 60);

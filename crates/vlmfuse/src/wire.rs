@@ -178,6 +178,18 @@ pub struct StateOut {
     pub rounds: u64,
     /// Context dimension in force; null until the first round.
     pub dim: Option<usize>,
+    /// `adaptive`'s pool: labelled and unlabelled entries (the latter bounded by
+    /// `[fusion.adaptive] pool_max`); absent under `paper`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pool: Option<PoolOut>,
+}
+
+#[derive(Serialize)]
+pub struct PoolOut {
+    pub labelled: usize,
+    pub unlabelled: usize,
+    /// The cap on unlabelled entries (0: none).
+    pub max_unlabelled: usize,
 }
 
 /// `GET /v1/ontology`.
@@ -257,6 +269,11 @@ pub fn state_out(eng: &Engine, rounds: u64) -> StateOut {
                 .zip(eng.stats().iter().cloned())
                 .collect(),
         ),
+        pool: eng.pool_sizes().map(|(labelled, unlabelled)| PoolOut {
+            labelled,
+            unlabelled,
+            max_unlabelled: eng.config().adaptive.pool_max,
+        }),
         rounds,
         dim: eng.dim(),
     }

@@ -77,6 +77,14 @@ impl MethodState {
         }
     }
 
+    /// `adaptive`'s pool: (labelled, unlabelled) entries. `None` under `paper`.
+    pub fn pool_sizes(&self) -> Option<(usize, usize)> {
+        match self {
+            MethodState::Paper(_) => None,
+            MethodState::Adaptive(a) => Some(a.pool_sizes()),
+        }
+    }
+
     /// Whether unlabelled rounds change the state ([`MethodState::observe`] is not a no-op).
     pub fn observes(&self) -> bool {
         matches!(self, MethodState::Adaptive(_))

@@ -131,6 +131,10 @@ pub fn publish_gauges(engine: &Engine) {
     }
     metrics::gauge!("vlmfuse_labelled_rounds").set(engine.labelled() as f64);
     metrics::gauge!("vlmfuse_threshold").set(engine.threshold().scalar());
+    if let Some((labelled, unlabelled)) = engine.pool_sizes() {
+        metrics::gauge!("vlmfuse_pool_entries", "kind" => "labelled").set(labelled as f64);
+        metrics::gauge!("vlmfuse_pool_entries", "kind" => "unlabelled").set(unlabelled as f64);
+    }
 }
 
 /// How long idempotency keys are kept, and when they were last pruned.

@@ -120,6 +120,10 @@ pub struct AdaptiveConfig {
     /// the pool: EM that runs a little with every event, so its result depends on the events
     /// alone and never on timing (replays are exact).
     pub em_chunk: usize,
+    /// Most unlabelled rounds the pool keeps (0: all). Labelled rounds are always kept; past
+    /// the cap (plus a slack of a sixteenth of it) the oldest unlabelled rounds leave, so that
+    /// memory and the per-round scan stay bounded however long the service runs.
+    pub pool_max: usize,
 
     /// Half-life of evidence, in labelled rounds: a round `a` labelled rounds older counts
     /// `2^(-a / half_life)`. 0 switches decay off.
@@ -202,6 +206,7 @@ impl Default for AdaptiveConfig {
             unlabelled_ramp: 20.0,
             refresh_max: 50,
             em_chunk: 16,
+            pool_max: 100_000,
             half_life: 0.0,
             eta: 0.03,
             decay_prior: false,

@@ -671,6 +671,7 @@ impl Adaptive {
     fn scan_for(&self, cx: &Ctx, context: &[f64], scan: Option<&Scan>) -> Scan {
         let pool = &self.pool;
         match scan {
+            Some(s) if s.epoch != pool.epoch() => pool.scan(context, cx.labelled),
             Some(s) if s.pool_len == pool.len() => s.clone(),
             Some(s) if s.pool_len < pool.len() => pool.extend_scan(context, cx.labelled, s),
             _ => pool.scan(context, cx.labelled),
@@ -714,6 +715,12 @@ impl Adaptive {
         }
     }
 
+    /// Pool entries: (labelled, unlabelled).
+    pub fn pool_sizes(&self) -> (usize, usize) {
+        let u = self.pool.unlabelled().len();
+        (self.pool.len() - u, u)
+    }
+
     /// Whether observing round `seq` changes anything: semi-supervision is on and the round is
     /// not in the pool yet (observing is idempotent per `seq`).
     pub fn wants(&self, cx: &Ctx, seq: u64) -> bool {
@@ -736,8 +743,36 @@ impl Adaptive {
             &scan,
         );
         self.global_add(cx, pos, 1.0);
+        self.retain(cx);
         self.maybe_rebase(cx);
         self.em_chunk(cx);
+    }
+
+    /// The bounded pool (`pool_max`, docs/METHOD.md §6): every labelled round stays; once the
+    /// unlabelled entries exceed the cap by its slack (a sixteenth of it), the oldest
+    /// unlabelled ones leave until the cap is met, in one compaction. Which entries leave
+    /// depends on the event order alone, so replays stay exact. A round that leaves and is
+    /// labelled later joins again as a labelled entry, with a fresh scan.
+    fn retain(&mut self, cx: &Ctx) {
+        let cap = cx.cfg.adaptive.pool_max;
+        let unlabelled = self.pool.unlabelled().len();
+        if cap == 0 || unlabelled <= cap + (cap / 16).max(1) {
+            return;
+        }
+        let out: Vec<usize> = self.pool.unlabelled()[..unlabelled - cap]
+            .iter()
+            .map(|&p| p as usize)
+            .collect();
+        for &pos in &out {
+            self.global_add(cx, pos, -1.0);
+        }
+        let mut dead = vec![false; self.pool.len()];
+        for &pos in &out {
+            dead[pos] = true;
+        }
+        let cursor = self.cursor.min(dead.len());
+        self.cursor = dead[..cursor].iter().filter(|d| !**d).count();
+        self.pool.evict(&dead);
     }
 
     /// A labelled round: the credit memory takes in its credits; the correlation window (if

@@ -29,6 +29,8 @@ pub struct Nb {
 pub struct Scan {
     /// Pool size at scan time.
     pub pool_len: usize,
+    /// The pool's eviction count at scan time: positions from an earlier epoch are stale.
+    pub epoch: u64,
     /// The round's own neighbours, best first.
     pub top: Vec<Nb>,
     /// Entries that may take the round as a neighbour, with exact cosines, in pool order.
@@ -61,6 +63,8 @@ pub struct Pool {
     /// chasing one pointer per entry (the lists are separate allocations). Used only without
     /// decay, where the ranking weight is a monotone function of the cosine.
     worst_sim: Vec<f64>,
+    /// Evictions so far ([`Pool::evict`]); a scan is valid only in its own epoch.
+    epoch: u64,
 }
 
 /// `max(0, s)^tau`.
@@ -95,7 +99,73 @@ impl Pool {
             by_seq: HashMap::new(),
             unlabelled: Vec::new(),
             worst_sim: Vec::new(),
+            epoch: 0,
         }
+    }
+
+    pub fn epoch(&self) -> u64 {
+        self.epoch
+    }
+
+    /// Removes the entries with `dead[pos]` true and renumbers the others, keeping their order
+    /// (the bounded pool's retention). Neighbour lists lose the removed entries, so lists may be
+    /// shorter than `kmax` until later rounds fill them again. Returns the new position of every
+    /// old position (`None` for the removed).
+    pub fn evict(&mut self, dead: &[bool]) -> Vec<Option<u32>> {
+        let len = self.len();
+        debug_assert_eq!(dead.len(), len);
+        let mut map = vec![None; len];
+        let mut next = 0u32;
+        for (pos, m) in map.iter_mut().enumerate() {
+            if !dead[pos] {
+                *m = Some(next);
+                next += 1;
+            }
+        }
+        let keep: Vec<bool> = dead.iter().map(|d| !d).collect();
+        self.bank.retain(&keep);
+        let l = self.l;
+        let mut w = 0;
+        for r in 0..len {
+            if dead[r] {
+                continue;
+            }
+            if w != r {
+                self.soft.copy_within(r * l..(r + 1) * l, w * l);
+                self.labelled[w] = self.labelled[r];
+                self.clock[w] = self.clock[r];
+                self.nb.swap(w, r);
+            }
+            w += 1;
+        }
+        self.soft.truncate(w * l);
+        self.labelled.truncate(w);
+        self.clock.truncate(w);
+        self.nb.truncate(w);
+        for list in &mut self.nb {
+            list.retain_mut(|e| match map[e.pos as usize] {
+                Some(p) => {
+                    e.pos = p;
+                    true
+                }
+                None => false,
+            });
+        }
+        self.by_seq.retain(|_, pos| match map[*pos] {
+            Some(p) => {
+                *pos = p as usize;
+                true
+            }
+            None => false,
+        });
+        self.unlabelled = (0..w as u32)
+            .filter(|&p| !self.labelled[p as usize])
+            .collect();
+        if !self.worst_sim.is_empty() {
+            self.worst_sim = (0..w).map(|p| self.worst_of(p)).collect();
+        }
+        self.epoch += 1;
+        map
     }
 
     pub fn len(&self) -> usize {
@@ -285,6 +355,7 @@ impl Pool {
         }
         Scan {
             pool_len: len,
+            epoch: self.epoch,
             top,
             rev,
         }
@@ -384,6 +455,7 @@ impl Pool {
         }
         Scan {
             pool_len: len,
+            epoch: self.epoch,
             top,
             rev,
         }
@@ -406,6 +478,7 @@ impl Pool {
         self.rank(&mut top, self.kmax);
         Scan {
             pool_len: len,
+            epoch: self.epoch,
             top,
             rev,
         }
