@@ -229,8 +229,8 @@ impl Bank {
         debug_assert_eq!(keep.len(), self.len());
         let (d, n, l) = (self.dim, self.n, self.l);
         let mut w = 0;
-        for r in 0..keep.len() {
-            if !keep[r] {
+        for (r, &k) in keep.iter().enumerate() {
+            if !k {
                 continue;
             }
             if w != r {

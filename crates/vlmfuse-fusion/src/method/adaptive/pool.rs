@@ -126,8 +126,8 @@ impl Pool {
         self.bank.retain(&keep);
         let l = self.l;
         let mut w = 0;
-        for r in 0..len {
-            if dead[r] {
+        for (r, &gone) in dead.iter().enumerate() {
+            if gone {
                 continue;
             }
             if w != r {
