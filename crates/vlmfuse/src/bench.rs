@@ -37,6 +37,10 @@ pub struct BenchArgs {
     /// The fusion method of the scale run.
     #[arg(long, default_value = "adaptive", value_parser = parse_method)]
     pub method: Method,
+    /// `[fusion.adaptive] pool_max` of the scale run (most unlabelled rounds kept; 0 = all).
+    /// Without it, the default.
+    #[arg(long)]
+    pub pool_max: Option<usize>,
 }
 
 fn parse_method(s: &str) -> Result<Method, String> {
@@ -63,10 +67,11 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
     let l = ontology.len();
     let names = reporter_names(args.reporters);
     println!(
-        "state at scale, method {}, d = {}, n = {}, one round in ten labelled; restart = open + rebuild of the engine (the service's start before it listens)",
+        "state at scale, method {}, d = {}, n = {}, pool_max = {}, one round in ten labelled; restart = open + rebuild of the engine (the service's start before it listens)",
         args.method.name(),
         args.dim,
-        args.reporters
+        args.reporters,
+        args.pool_max.unwrap_or(vlmfuse_fusion::AdaptiveConfig::default().pool_max)
     );
     for &n in &args.scale {
         let tmp = tempfile::tempdir()?;
@@ -102,6 +107,9 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
             ..Default::default()
         };
         cfg.fusion.method = args.method;
+        if let Some(m) = args.pool_max {
+            cfg.fusion.adaptive.pool_max = m;
+        }
         cfg.server.data_dir = data.clone();
         let t = Instant::now();
         let done = crate::import::import(&cfg, &file, 2000, 20, false)?;
