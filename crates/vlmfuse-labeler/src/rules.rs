@@ -1290,6 +1290,7 @@ fn build() -> Vec<LabelRules> {
             re(r"\bmerg(e|ing) (arrow|arrows|lane|point|sign|traffic|vehicle|lorry|truck|car)\b"),
             re(r"\blane change (now |here |at this point )?(would|will|could|might|is not|isn not)\b"),
             re(r"\b(lanes|roads) merge\b"),
+            re(r"\bpull(ing)? over (to|towards|onto|on to) the (left|right|side|kerb|curb|verge|hard shoulder|shoulder)\b"),
         ],
     });
     v.push(LabelRules {
@@ -1318,6 +1319,10 @@ fn build() -> Vec<LabelRules> {
             re(r"\b(gap|space) (opening|opens|appears|appearing|in the traffic|in traffic)\b"),
             re(r"\bleave (room|space) for\b"),
             re(r"\bstay behind the (line|stop line)\b"),
+            // Speed, not a gap: "ease back on the speed" is slowing.
+            re(r"\b(ease|easing) back (on|off) (the |your )?(speed|pace|gas|throttle|accelerator|power)\b"),
+            // Room for another road user to move off is giving way, not a gap.
+            re(r"\bgiv(e|ing) (the |a |an |that |this )?[a-z]+ (room|space|time|a chance|the chance) to (pull out|pull away|merge|pass|go|get out|move off|rejoin|come out|turn|cross)\b"),
         ],
     });
     v.push(LabelRules {
@@ -1356,7 +1361,8 @@ fn build() -> Vec<LabelRules> {
             // answer `weather_decision` drops them.
             a(r"\bkeep(ing)? (it|things|the speed|your speed|speeds|speed|the pace|your pace) (slow|down|low|modest|sensible|gentle)\b"),
             a(r"\b(take|taking) it (easy|slow|steady|gently|careful|carefully)\b"),
-            a(r"\bgo(ing)? easy\b"),
+            a(r"\bgo(ing)? (easy|gently|steady|slow|slowly|carefully and slowly)\b"),
+            a(r"\b(drive|driving) (gently|at a (lower|reduced|gentler|slower) speed)\b"),
             a(r"\bhold(ing)? back\b"),
             a(r"\b(low|lower|reduced|gentle|sensible|cautious|modest) speed\b"),
         ],
@@ -1377,7 +1383,9 @@ fn build() -> Vec<LabelRules> {
             a(r"\b(once|after|when|until|till) (the |a |an |that |this |those |any |all )?(oncoming |other |approaching )?([a-z]+ ){0,2}(car|cars|vehicle|vehicles|truck|trucks|lorry|lorries|bus|buses|cyclist|cyclists|traffic|van|vans|motorcyclist|motorbike|bike|bikes|tram|coach|taxi|ambulance|fire engine|police car|tractor|rider|riders|horse|horses|suv|pickup|motorbikes|scooter) (has |have )?(passed|cleared|gone by|gone past|gone through|gone|come through|got through|clears|passes)\b"),
             a(r"\bwait(ing)? (till|til) (a |the |an |that |this |oncoming |other )?([a-z]+ ){0,2}(car|cars|vehicle|vehicles|truck|trucks|lorry|lorries|bus|buses|cyclist|cyclists|traffic|van|vans|motorcyclist|motorbike|bike|bikes|tram|coach|taxi|ambulance|gap) \b"),
             a(r"\bmake way for\b"),
-            a(r"\bpull(ing)? over (for|to let)\b"),
+            a(r"\bpull(ing)? over (to the (left|right|side|kerb|curb|verge) )?(for|to let)\b"),
+            // 4. Room for another road user to move off.
+            a(r"\bgiv(e|ing) (the |a |an |that |this )?[a-z]+ (room|space|time|a chance|the chance) to (pull out|pull away|merge|pass|go|get out|move off|rejoin|come out|turn)\b"),
             a(r"\b(give_way|give way|yield) : (yes|true|to)\b"),
         ],
         vetoes: vec![
@@ -1722,7 +1730,20 @@ pub fn mentions(sents: &[Sentence]) -> Vec<Mention> {
         let non_road = |w: &&str| NON_ROAD.contains(w);
         let out_of =
             (m.b..k).any(|j| s.w(j) == "out") && (m.b..k).any(|j| NON_ROAD.contains(&s.w(j)));
-        if dest.is_empty() || dest.iter().any(non_road) || out_of {
+        // "into Park Road", "onto School Lane": a road named after a place is still a road.
+        let named_road = dest.iter().any(|w| {
+            [
+                "road",
+                "street",
+                "avenue",
+                "boulevard",
+                "crescent",
+                "terrace",
+                "highway",
+            ]
+            .contains(w)
+        });
+        if dest.is_empty() || dest.iter().any(non_road) && !named_road || out_of {
             continue;
         }
         extra.push(Mention {

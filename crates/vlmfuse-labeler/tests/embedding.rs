@@ -317,6 +317,23 @@ fn other_styles_kinds_are_read_as_the_guidelines_say() {
             "Hold at the give way line until the tractor has cleared.",
             &["stop", "yield_to_traffic"],
         ),
+        (
+            "Pull over to the left for the fire engine behind us.",
+            &["stop", "yield_to_traffic"],
+        ),
+        (
+            "Give the bus room to pull out from the stop, then continue.",
+            &["yield_to_traffic"],
+        ),
+        (
+            "Fog is rolling in; ease back on the speed.",
+            &["brake", "adjust_speed_due_to_weather"],
+        ),
+        ("Snow is settling, go gently.", &["adjust_speed_due_to_weather"]),
+        (
+            "1) Check mirrors\n2) Signal left\n3) Turn left into Park Road",
+            &["turn_left", "junction_ahead", "check_blind_spot"],
+        ),
         // Soft but real advice; true hedges stay hedges.
         ("You could speed up a little.", &["accelerate"]),
         ("Maybe you could slow down.", &[]),
