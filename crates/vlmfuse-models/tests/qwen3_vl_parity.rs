@@ -539,3 +539,133 @@ fn malformed_requests_are_clear_errors() {
         .unwrap_err();
     assert!(e.to_string().contains("share a size"), "{e}");
 }
+
+fn saved_dir(sub: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../tests/data/parity/saved_5_23")
+        .join(sub)
+}
+
+/// Writes the text files `save_pretrained` wrote (recorded by scripts/parity/saved_layouts.py)
+/// into `dir`, and removes the older layout's separate processor files. The tokenizer files are
+/// left as the fixture wrote them: transformers turns the fixture's hand-built word-level
+/// vocabulary into a `Qwen2Tokenizer` BPE when it saves it, a change of tokenizer, not of layout
+/// (tokenization is compared with transformers by the tests above).
+fn write_saved_files(dir: &Path, sub: &str) {
+    let files: Value =
+        serde_json::from_str(&std::fs::read_to_string(saved_dir(sub).join("files.json")).unwrap())
+            .unwrap();
+    for old in ["preprocessor_config.json", "video_preprocessor_config.json"] {
+        let _ = std::fs::remove_file(dir.join(old));
+    }
+    for (name, text) in files.as_object().unwrap() {
+        if name.starts_with("tokenizer") {
+            continue;
+        }
+        std::fs::write(dir.join(name), text.as_str().unwrap()).unwrap();
+    }
+    assert!(!dir.join("video_preprocessor_config.json").exists());
+}
+
+/// The fixture as transformers 5.23's `save_pretrained` writes it (the video processor nested in
+/// `processor_config.json`, no separate processor files): it loads with the same processor
+/// settings as the older layout and gives transformers' logits and greedy ids.
+#[test]
+fn a_checkpoint_saved_by_transformers_5_23_loads_and_matches() {
+    let old = fixture();
+    let dir = tempfile::tempdir().unwrap();
+    TinyQwen3Vl::default().write(dir.path(), 7).unwrap();
+    let names: Value = serde_json::from_str(
+        &std::fs::read_to_string(saved_dir("qwen3_vl").join("names.json")).unwrap(),
+    )
+    .unwrap();
+    let (vis, txt) = TinyQwen3Vl::default().tensors(7);
+    assert!(
+        vis.keys().chain(txt.keys()).all(|k| names[k] == *k),
+        "5.23 renames Qwen3-VL tensors: rebuild model.safetensors with names.json"
+    );
+    write_saved_files(dir.path(), "qwen3_vl");
+    let src = WeightSource::local(dir.path());
+    let model = Qwen3Vl::load(&src, &LoadOptions::default()).unwrap();
+    let proc = Qwen3VlProcessor::load(&src, model.config()).unwrap();
+    assert_eq!(proc.video.config, old.proc.video.config);
+    let f = Fixture {
+        _dir: dir,
+        src,
+        model,
+        proc,
+    };
+    let reference = read("reference.json");
+    let case = reference["cases"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["name"] == "video8_describe")
+        .unwrap();
+    let seq = sequence(&f, case);
+    let (greedy, _) = greedy_with_logits(&f.model, std::slice::from_ref(&seq), 16);
+    assert_eq!(greedy[0], ids(&case["greedy_ids"]));
+}
+
+/// The released checkpoints' video processor (patch 16, their pixel budget and mean/std) as
+/// transformers 5.23 saves it, nested in `processor_config.json`: read as transformers reads
+/// it (the recorded settings), and the same grid and grey levels as transformers on a clip.
+/// Before, the nested settings were not read and the class defaults gave another budget. The
+/// same settings in the older layout (`video_preprocessor_config.json`) read the same.
+#[test]
+fn a_nested_patch16_processor_reads_and_runs_as_transformers() {
+    let reference: Value = serde_json::from_str(
+        &std::fs::read_to_string(saved_dir("qwen3_vl_patch16").join("reference.json")).unwrap(),
+    )
+    .unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    write_saved_files(dir.path(), "qwen3_vl_patch16");
+    let nested = VideoProcessorConfig::from_source(&WeightSource::local(dir.path())).unwrap();
+    let set = &reference["settings"];
+    assert_eq!(nested.patch_size, u(set, "patch_size"));
+    assert_eq!(nested.min_pixels, u(&set["size"], "shortest_edge"));
+    assert_eq!(nested.max_pixels, u(&set["size"], "longest_edge"));
+    assert_eq!(nested.min_frames, u(set, "min_frames"));
+    assert_eq!(nested.max_frames, u(set, "max_frames"));
+    assert_eq!(nested.fps, set["fps"].as_f64().unwrap());
+    assert_eq!(nested.image_mean.to_vec(), floats(&set["image_mean"]));
+    assert_eq!(nested.image_std.to_vec(), floats(&set["image_std"]));
+    // The older layout: the same settings in their own file.
+    let files: Value = serde_json::from_str(
+        &std::fs::read_to_string(saved_dir("qwen3_vl_patch16").join("files.json")).unwrap(),
+    )
+    .unwrap();
+    let proc_cfg: Value =
+        serde_json::from_str(files["processor_config.json"].as_str().unwrap()).unwrap();
+    let old = tempfile::tempdir().unwrap();
+    std::fs::write(
+        old.path().join("video_preprocessor_config.json"),
+        proc_cfg["video_processor"].to_string(),
+    )
+    .unwrap();
+    let separate = VideoProcessorConfig::from_source(&WeightSource::local(old.path())).unwrap();
+    assert_eq!(separate, nested);
+
+    let fr = &reference["frames"];
+    let (n, w, h) = (u(fr, "n"), u(fr, "width"), u(fr, "height"));
+    let clip = frames(n, w, h, u(fr, "k0"));
+    let times: Vec<f64> = (0..n).map(|i| i as f64 / 2.0).collect();
+    let v = VideoProcessor::new(nested)
+        .process(&refs(&clip, w, h), &times)
+        .unwrap();
+    let grid: Vec<usize> = ids(&reference["grid_thw"])
+        .into_iter()
+        .map(|x| x as usize)
+        .collect();
+    assert_eq!(v.input.grid_thw.to_vec(), grid, "grid");
+    let want = base64::engine::general_purpose::STANDARD
+        .decode(reference["grey_u8"].as_str().unwrap())
+        .unwrap();
+    assert_eq!(want.len(), v.input.pixel_values.len());
+    let worst = want
+        .iter()
+        .zip(&v.input.pixel_values)
+        .map(|(&g, &x)| (x * 127.5 + 127.5 - g as f32).abs())
+        .fold(0f32, f32::max);
+    assert!(worst <= 1.0 + 1e-3, "pixels off by {worst} grey levels");
+}

@@ -410,6 +410,78 @@ fn batch_rows_equal_their_single_runs_even_with_different_frame_counts() {
     }
 }
 
+/// A checkpoint as transformers 5.23's `save_pretrained` writes it (from a model it built
+/// itself: towers saved as `video_tower.*` without `vision_model`, the processors nested in
+/// `processor_config.json`, no `preprocessor_config.json`), rebuilt from the fixture with the
+/// names and files `scripts/parity/saved_layouts.py` recorded: it loads, and computes what the
+/// hub layout computes.
+#[test]
+fn a_checkpoint_saved_by_transformers_5_23_loads_the_same_model() {
+    let f = fixture();
+    let saved = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../tests/data/parity/saved_5_23/video_llava");
+    let read = |n: &str| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(saved.join(n)).unwrap()).unwrap()
+    };
+    let (names, files) = (read("names.json"), read("files.json"));
+    let tmp = tempfile::tempdir().unwrap();
+    let tensors: std::collections::HashMap<String, candle_core::Tensor> = TinyVideoLlava::default()
+        .tensors(MODEL_SEED)
+        .into_iter()
+        .map(|(k, v)| {
+            (
+                names[&k]
+                    .as_str()
+                    .unwrap_or_else(|| panic!("{k}"))
+                    .to_string(),
+                v,
+            )
+        })
+        .collect();
+    assert!(tensors
+        .keys()
+        .any(|k| k.starts_with("video_tower.embeddings.")));
+    candle_core::safetensors::save(&tensors, tmp.path().join("model.safetensors")).unwrap();
+    for (name, text) in files.as_object().unwrap() {
+        std::fs::write(tmp.path().join(name), text.as_str().unwrap()).unwrap();
+    }
+    assert!(!tmp.path().join("preprocessor_config.json").exists());
+    let (hub, hub_proc) = load(&f.model, opts());
+    let (v523, proc) = load(tmp.path(), opts());
+    let frames = clip("upscale").render();
+    let fr = refs(&frames);
+    let text = proc.video_prompt(prompt("describe"));
+    let inputs = proc
+        .prepare_videos(&[(text.as_str(), fr.as_slice())])
+        .unwrap();
+    let hub_inputs = hub_proc
+        .prepare_videos(&[(
+            hub_proc.video_prompt(prompt("describe")).as_str(),
+            fr.as_slice(),
+        )])
+        .unwrap();
+    let run = |m: &VideoLlava, i: &ModelInputs| -> Vec<f32> {
+        let mut c = m.new_cache(256);
+        m.prefill(i, &mut c)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap()
+    };
+    assert_eq!(run(&hub, &hub_inputs), run(&v523, &inputs));
+    // The LoRA adapter (transformers 5 module names) merges into either base alike.
+    let with_adapter = || LoadOptions {
+        adapter: Some(WeightSource::local(&f.adapter)),
+        ..opts()
+    };
+    let (hub_l, _) = load(&f.model, with_adapter());
+    let (v523_l, _) = load(tmp.path(), with_adapter());
+    let merged = run(&v523_l, &inputs);
+    assert_eq!(run(&hub_l, &hub_inputs), merged);
+    assert_ne!(merged, run(&v523, &inputs), "the adapter changed nothing");
+}
+
 #[test]
 fn transformers5_key_names_load_the_same_model() {
     let f = fixture();

@@ -239,9 +239,18 @@ impl VideoProcessorConfig {
         Ok(())
     }
 
-    /// The checkpoint's video processor config: `video_preprocessor_config.json`, else
+    /// The checkpoint's video processor config, resolved as transformers resolves it:
+    /// `processor_config.json`'s nested `video_processor` (what transformers 5.23's
+    /// `save_pretrained` writes), else `video_preprocessor_config.json`, else
     /// `preprocessor_config.json` (where older checkpoints keep both), else the class defaults.
     pub fn from_source(src: &WeightSource) -> Result<Self, ModelError> {
+        const PROC: &str = "processor_config.json";
+        if src.resolve_optional(PROC)?.is_some() {
+            let v: Value = src.read_json(PROC)?;
+            if let Some(vp) = v.get("video_processor").filter(|x| x.is_object()) {
+                return Self::from_json(vp, "processor_config.json (video_processor)");
+            }
+        }
         for f in ["video_preprocessor_config.json", "preprocessor_config.json"] {
             if src.resolve_optional(f)?.is_some() {
                 let v: Value = src.read_json(f)?;

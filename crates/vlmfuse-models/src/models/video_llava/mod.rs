@@ -7,10 +7,11 @@
 //! runs as one left-padded batch: one vision pass over every frame, one causal prefill, then one
 //! decoding step per token for all rows.
 //!
-//! Both checkpoint layouts load: the hub's (`language_model.model.*`, `video_tower.vision_model.*`,
-//! as `LanguageBind/Video-LLaVA-7B-hf` ships) and transformers 5's in-memory names
-//! (`model.language_model.*`, `model.video_tower.*`, `lm_head`). LoRA adapters trained against
-//! either are merged at load.
+//! Every checkpoint layout loads ([`PARTS`]): the hub's (`language_model.model.*`,
+//! `video_tower.vision_model.*`, as `LanguageBind/Video-LLaVA-7B-hf` ships), transformers 5's
+//! module paths (`model.language_model.*`, `model.video_tower.*`, `lm_head`) and what
+//! transformers 5.23's `save_pretrained` writes (`video_tower.embeddings.*`). LoRA adapters
+//! trained against any of them are merged at load.
 
 pub mod config;
 mod family;
@@ -37,22 +38,100 @@ use crate::{FrameRef, ModelError};
 use text::LlamaText;
 use vision::{concat_features, ClipTower, Projector};
 
-/// transformers 5 module path → the hub layout this module reads. Names already in the hub
-/// layout pass through.
+/// Where each part of the model lives in the layouts VideoLLaVA checkpoints come in: the hub
+/// name this module reads, and the file prefixes that hold it, in the order they are tried.
+/// - the hub's (`LanguageBind/Video-LLaVA-7B-hf`, transformers 4): `language_model.model.*`,
+///   `language_model.lm_head.*`, `video_tower.vision_model.*`;
+/// - transformers 5's module paths (in memory, and PEFT adapters trained on it):
+///   `model.language_model.*`, `lm_head.*`, `model.video_tower.*`;
+/// - transformers 5.23's `save_pretrained`: the towers without `vision_model`
+///   (`video_tower.embeddings.*`, `video_tower.encoder.*`).
+const PARTS: [(&str, &[&str], &str); 5] = [
+    (
+        "language_model.model.",
+        &[
+            "language_model.model.",
+            "model.language_model.",
+            "language_model.",
+        ],
+        "embed_tokens.weight",
+    ),
+    (
+        "language_model.lm_head.",
+        &["language_model.lm_head.", "lm_head."],
+        "weight",
+    ),
+    (
+        "video_tower.vision_model.",
+        &[
+            "video_tower.vision_model.",
+            "model.video_tower.vision_model.",
+            "model.video_tower.",
+            "video_tower.",
+        ],
+        "embeddings.patch_embedding.weight",
+    ),
+    (
+        "image_tower.vision_model.",
+        &[
+            "image_tower.vision_model.",
+            "model.image_tower.vision_model.",
+            "model.image_tower.",
+            "image_tower.",
+        ],
+        "embeddings.patch_embedding.weight",
+    ),
+    (
+        "multi_modal_projector.",
+        &["multi_modal_projector.", "model.multi_modal_projector."],
+        "linear_1.weight",
+    ),
+];
+
+/// Any layout's name → the hub layout this module reads (names already in it pass through).
 pub fn hub_name(name: &str) -> String {
-    const MAP: [(&str, &str); 5] = [
-        ("model.language_model.", "language_model.model."),
-        ("lm_head.", "language_model.lm_head."),
-        ("model.video_tower.", "video_tower.vision_model."),
-        ("model.image_tower.", "image_tower.vision_model."),
-        ("model.multi_modal_projector.", "multi_modal_projector."),
-    ];
-    for (from, to) in MAP {
-        if let Some(rest) = name.strip_prefix(from) {
-            return format!("{to}{rest}");
+    // The longest matching file prefix decides ("model.video_tower.vision_model." before
+    // "model.video_tower."), and a name already under a hub prefix is left alone.
+    if PARTS.iter().any(|(hub, _, _)| name.starts_with(hub)) {
+        return name.to_string();
+    }
+    let mut best: Option<(&str, &str)> = None;
+    for (hub, files, _) in PARTS {
+        for f in files {
+            if name.starts_with(f) && best.is_none_or(|(b, _)| f.len() > b.len()) {
+                best = Some((f, hub));
+            }
         }
     }
-    name.to_string()
+    match best {
+        Some((f, hub)) => format!("{hub}{}", &name[f.len()..]),
+        None => name.to_string(),
+    }
+}
+
+/// For each part, the file prefix this checkpoint uses (probed by one tensor each), as a map
+/// from hub names to file names. Parts it has in no known layout keep their hub names, so the
+/// load error names the tensor the hub layout expects.
+fn file_names(vb: &VarBuilder) -> impl Fn(&str) -> String + Sync + Send + 'static {
+    let chosen: Vec<(&'static str, &'static str)> = PARTS
+        .iter()
+        .map(|(hub, files, probe)| {
+            let f = files
+                .iter()
+                .find(|f| vb.contains_tensor(&format!("{f}{probe}")))
+                .copied()
+                .unwrap_or(hub);
+            (*hub, f)
+        })
+        .collect();
+    move |name: &str| {
+        for (hub, f) in &chosen {
+            if let Some(rest) = name.strip_prefix(hub) {
+                return format!("{f}{rest}");
+            }
+        }
+        name.to_string()
+    }
 }
 
 /// The inverse of [`hub_name`].
@@ -185,11 +264,8 @@ impl VideoLlava {
         let vb = match &opts.adapter {
             None => {
                 let vb = var_builder(&files, opts.dtype, &opts.device)?;
-                if vb.contains_tensor("language_model.model.embed_tokens.weight") {
-                    vb
-                } else {
-                    vb.rename_f(transformers5_name)
-                }
+                let names = file_names(&vb);
+                vb.rename_f(names)
             }
             Some(adapter) => {
                 // The merge needs the base weights in memory; they are renamed to the hub
