@@ -53,6 +53,11 @@ pub struct OpenAiReporterConfig {
     pub video_url_template: Option<String>,
     pub frame_format: FrameFormat,
     pub jpeg_quality: u8,
+    /// In `frames` mode, frames are scaled (bicubic) so their shorter side is at most this
+    /// many pixels before they are encoded (0: as decoded). The service decodes frames at the
+    /// clip's own resolution so that in-process models get what their processors expect; a
+    /// remote server gets a copy of bounded size.
+    pub frame_short_side: u32,
     pub prompt: String,
     pub system_prompt: Option<String>,
     pub max_tokens: u32,
@@ -85,6 +90,7 @@ impl Default for OpenAiReporterConfig {
             video_url_template: None,
             frame_format: FrameFormat::Jpeg,
             jpeg_quality: 90,
+            frame_short_side: 448,
             prompt: DEFAULT_PROMPT.into(),
             system_prompt: None,
             max_tokens: 512,
@@ -187,10 +193,11 @@ impl OpenAiReporter {
                 }
                 let frames = Arc::clone(&clip.frames);
                 let (fmt, q) = (self.cfg.frame_format, self.cfg.jpeg_quality);
+                let short = self.cfg.frame_short_side;
                 let urls = tokio::task::spawn_blocking(move || {
                     frames
                         .iter()
-                        .map(|f| frame_data_url(f, fmt, q))
+                        .map(|f| frame_data_url(&*scaled(f, short)?, fmt, q))
                         .collect::<Result<Vec<_>, _>>()
                 })
                 .await
@@ -361,6 +368,36 @@ fn video_mime(path: &Path) -> &'static str {
     }
 }
 
+/// `f` with its shorter side scaled down to `short` (0, or already that small: unchanged).
+fn scaled(f: &Frame, short: u32) -> Result<std::borrow::Cow<'_, Frame>, ModelError> {
+    let s = f.width.min(f.height);
+    if short == 0 || s <= short {
+        return Ok(std::borrow::Cow::Borrowed(f));
+    }
+    let r = short as f64 / s as f64;
+    let (w, h) = (
+        ((f.width as f64 * r).round() as u32).max(1),
+        ((f.height as f64 * r).round() as u32).max(1),
+    );
+    let rgb = crate::imaging::resize_rgb8(
+        crate::FrameRef {
+            width: f.width,
+            height: f.height,
+            rgb: &f.rgb,
+        },
+        w as usize,
+        h as usize,
+        crate::imaging::Resample::Bicubic,
+        crate::imaging::Arith::Pil,
+    )?;
+    Ok(std::borrow::Cow::Owned(Frame {
+        width: w,
+        height: h,
+        rgb,
+        pts_s: f.pts_s,
+    }))
+}
+
 fn frame_data_url(f: &Frame, fmt: FrameFormat, jpeg_quality: u8) -> Result<String, ModelError> {
     use image::ImageEncoder as _;
     f.as_ref().validate()?;
@@ -394,6 +431,33 @@ fn frame_data_url(f: &Frame, fmt: FrameFormat, jpeg_quality: u8) -> Result<Strin
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Remote servers get frames of bounded size (the shorter side at most `frame_short_side`),
+    /// smaller frames and `0` pass as decoded.
+    #[test]
+    fn frames_for_a_server_are_scaled_to_the_short_side() {
+        let f = |w: u32, h: u32| Frame {
+            width: w,
+            height: h,
+            rgb: (0..w * h * 3).map(|i| (i % 251) as u8).collect(),
+            pts_s: 1.5,
+        };
+        let big = f(640, 480);
+        let s = scaled(&big, 448).unwrap();
+        assert_eq!((s.width, s.height, s.rgb.len()), (597, 448, 597 * 448 * 3));
+        assert_eq!(s.pts_s, 1.5);
+        let tall = scaled(&f(480, 1000), 448).unwrap();
+        assert_eq!((tall.width, tall.height), (448, 933));
+        let small = f(300, 200);
+        assert!(matches!(
+            scaled(&small, 448).unwrap(),
+            std::borrow::Cow::Borrowed(_)
+        ));
+        assert!(matches!(
+            scaled(&big, 0).unwrap(),
+            std::borrow::Cow::Borrowed(_)
+        ));
+    }
 
     #[test]
     fn config_errors_are_clear() {

@@ -14,7 +14,10 @@ pub struct MediaConfig {
         required = false
     )]
     pub frames: usize,
-    /// Frames are scaled so their shorter side is this many pixels (0: the clip's own size).
+    /// Frames are scaled so their shorter side is this many pixels (0, the default: the clip's
+    /// own size). In-process models get the frames as decoded and their own processors resize
+    /// them as their references do (any scaling here would come first and break that parity);
+    /// remote reporters scale their copy with `[[reporter]] frame_short_side`.
     #[arg(
         long = "media-frame-short-side",
         id = "media-frame-short-side",
@@ -125,7 +128,7 @@ impl Default for MediaConfig {
         let l = vlmfuse_media::MediaLimits::default();
         Self {
             frames: 8,
-            frame_short_side: 448,
+            frame_short_side: 0,
             max_clips: 4,
             max_bytes: l.max_bytes,
             max_duration_s: l.max_duration_s,
@@ -138,6 +141,20 @@ impl Default for MediaConfig {
             upload_grace_s: 10.0,
             temp_dir: None,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    /// By default frames are decoded at the clip's own size: in-process models' processors
+    /// resize them as their references do.
+    #[test]
+    fn frames_are_decoded_at_their_own_size_by_default() {
+        let o = super::MediaConfig::default().sample_options();
+        assert!(matches!(o.size, vlmfuse_media::FrameSize::Native), "{o:?}");
+        let shipped: toml::Value =
+            toml::from_str(include_str!("../../../../config/default.toml")).unwrap();
+        assert_eq!(shipped["media"]["frame_short_side"].as_integer(), Some(0));
     }
 }
 
