@@ -32,6 +32,11 @@ pub struct Bank {
     /// the fast similarity can be from the exact one (Cauchy-Schwarz). See [`Bank::top_exact`].
     mirror: Vec<f32>,
     mirror_err: Vec<f64>,
+    /// Contexts kept only as their f32 copy, which is then the context itself (exact cosines
+    /// are computed against it widened to f64): a third of the memory. The `adaptive` pool's
+    /// bank; the paper method's keeps f64 (PAPER-METHOD.md's numbers to 1e-9).
+    #[serde(default)]
+    compact: bool,
 }
 
 /// Below this many entries the exact f64 scan is cheap enough on its own.
@@ -131,6 +136,26 @@ pub fn dot(a: &[f64], b: &[f64]) -> f64 {
     s
 }
 
+/// [`dot`] of an f64 query with an f32 entry widened to f64, in the same order.
+#[inline]
+pub fn dot_f32(a: &[f64], b: &[f32]) -> f64 {
+    let mut acc = [0.0f64; 4];
+    let ca = a.chunks_exact(4);
+    let cb = b.chunks_exact(4);
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        acc[0] += x[0] * y[0] as f64;
+        acc[1] += x[1] * y[1] as f64;
+        acc[2] += x[2] * y[2] as f64;
+        acc[3] += x[3] * y[3] as f64;
+    }
+    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
+    for (x, y) in ra.iter().zip(rb) {
+        s += x * *y as f64;
+    }
+    s
+}
+
 impl Bank {
     pub fn new(n: usize, l: usize) -> Self {
         Self {
@@ -139,6 +164,25 @@ impl Bank {
             global: vec![[0; 4]; n * l],
             global_y: vec![0; l],
             ..Default::default()
+        }
+    }
+
+    /// A bank that keeps contexts only as f32 (see `compact`).
+    pub fn new_compact(n: usize, l: usize) -> Self {
+        Self {
+            compact: true,
+            ..Self::new(n, l)
+        }
+    }
+
+    /// The exact cosine of a unit-norm query to entry `pos` (against its f32 copy in a compact
+    /// bank).
+    #[inline]
+    pub fn sim(&self, x: &[f64], pos: usize) -> f64 {
+        if self.compact {
+            dot_f32(x, &self.mirror[pos * self.dim..(pos + 1) * self.dim])
+        } else {
+            dot(x, self.context(pos))
         }
     }
 
@@ -155,7 +199,9 @@ impl Bank {
         self.dim = dim;
     }
 
+    /// The f64 context of entry `pos`; not kept by a compact bank (use [`Bank::sim`]).
     pub fn context(&self, pos: usize) -> &[f64] {
+        debug_assert!(!self.compact, "a compact bank keeps no f64 contexts");
         &self.contexts[pos * self.dim..(pos + 1) * self.dim]
     }
 
@@ -197,8 +243,14 @@ impl Bank {
             self.dim = context.len();
         }
         debug_assert_eq!(context.len(), self.dim);
-        self.contexts.extend_from_slice(context);
-        self.push_mirror(context);
+        if self.compact {
+            // The f32 copy is the context: no rounding error to bound.
+            self.mirror.extend(context.iter().map(|&v| v as f32));
+            self.mirror_err.push(0.0);
+        } else {
+            self.contexts.extend_from_slice(context);
+            self.push_mirror(context);
+        }
         self.seqs.push(seq);
         for (i, &p) in present.iter().enumerate() {
             self.present.push(p as u8);
@@ -234,7 +286,9 @@ impl Bank {
                 continue;
             }
             if w != r {
-                self.contexts.copy_within(r * d..(r + 1) * d, w * d);
+                if !self.compact {
+                    self.contexts.copy_within(r * d..(r + 1) * d, w * d);
+                }
                 self.mirror.copy_within(r * d..(r + 1) * d, w * d);
                 self.mirror_err[w] = self.mirror_err[r];
                 self.seqs[w] = self.seqs[r];
@@ -245,7 +299,9 @@ impl Bank {
             }
             w += 1;
         }
-        self.contexts.truncate(w * d);
+        if !self.compact {
+            self.contexts.truncate(w * d);
+        }
         self.mirror.truncate(w * d);
         self.mirror_err.truncate(w);
         self.seqs.truncate(w);
@@ -318,7 +374,7 @@ impl Bank {
                 cand.push(j);
             }
         }
-        self.select(cand.into_iter().map(|j| (j, dot(x, self.context(j)))), m)
+        self.select(cand.into_iter().map(|j| (j, self.sim(x, j))), m)
     }
 
     /// The f32 first pass of [`Bank::top_exact`] on its own: every entry's approximate cosine to
@@ -388,7 +444,11 @@ impl Bank {
         if self.dim == 0 {
             return;
         }
-        out.extend(self.contexts.chunks_exact(self.dim).map(|c| dot(x, c)));
+        if self.compact {
+            out.extend(self.mirror.chunks_exact(self.dim).map(|c| dot_f32(x, c)));
+        } else {
+            out.extend(self.contexts.chunks_exact(self.dim).map(|c| dot(x, c)));
+        }
     }
 
     /// The `m` most similar entries, best first; equal similarities put the older round first.

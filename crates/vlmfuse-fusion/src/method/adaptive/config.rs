@@ -124,6 +124,10 @@ pub struct AdaptiveConfig {
     /// the cap (plus a slack of a sixteenth of it) the oldest unlabelled rounds leave, so that
     /// memory and the per-round scan stay bounded however long the service runs.
     pub pool_max: usize,
+    /// Keep the pool's contexts as f32 only (a third of the memory; cosines move by about
+    /// 1e-7, no metric of the benchmark suite moves). Off, they are kept in f64 as the paper
+    /// method's bank keeps them, which `paper_equivalent` needs to match it to 1e-9.
+    pub compact_contexts: bool,
 
     /// Half-life of evidence, in labelled rounds: a round `a` labelled rounds older counts
     /// `2^(-a / half_life)`. 0 switches decay off.
@@ -207,6 +211,7 @@ impl Default for AdaptiveConfig {
             refresh_max: 50,
             em_chunk: 16,
             pool_max: 100_000,
+            compact_contexts: true,
             half_life: 0.0,
             eta: 0.03,
             decay_prior: false,
@@ -254,6 +259,7 @@ impl AdaptiveConfig {
             threshold_min_rounds,
             threshold_shrink: 0.0,
             vote_fallback: false,
+            compact_contexts: false,
             ..Self::default()
         }
     }

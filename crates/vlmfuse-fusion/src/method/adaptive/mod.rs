@@ -155,7 +155,8 @@ impl Adaptive {
             ..cfg.clone()
         };
         Self {
-            pool: Pool::new(n, l, cfg.k.max(cfg.k_prior), cfg.tau, rank_half_life),
+            pool: Pool::new(n, l, cfg.k.max(cfg.k_prior), cfg.tau, rank_half_life)
+                .compact(cfg.adaptive.compact_contexts),
             calib: Calibrator::new(
                 l,
                 a.calib_window,

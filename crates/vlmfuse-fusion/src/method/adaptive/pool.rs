@@ -12,7 +12,7 @@
 //! decay that is the paper method's order exactly (cosine, then older first); with it, a recent round that is
 //! a little less similar beats an old one, so decay does not empty the neighbourhood of weight.
 
-use crate::bank::{dot, Bank};
+use crate::bank::Bank;
 use std::collections::HashMap;
 
 /// A neighbour: position, cosine, and the ranking weight it has for the entry (or query) whose
@@ -101,6 +101,15 @@ impl Pool {
             worst_sim: Vec::new(),
             epoch: 0,
         }
+    }
+
+    /// Keeps contexts as f32 only (see [`Bank::new_compact`]). Call it on an empty pool.
+    pub fn compact(mut self, on: bool) -> Self {
+        debug_assert_eq!(self.len(), 0);
+        if on {
+            self.bank = Bank::new_compact(self.n, self.l);
+        }
+        self
     }
 
     pub fn epoch(&self) -> u64 {
@@ -383,7 +392,7 @@ impl Pool {
                     let a = approx[j] as f64;
                     lo.push(a - bound[j]);
                     if a + bound[j] >= self.worst_sim[j] {
-                        let sim = dot(x, self.bank.context(j));
+                        let sim = self.bank.sim(x, j);
                         if sim >= self.worst_sim[j] {
                             rev.push((j, sim));
                         }
@@ -393,7 +402,7 @@ impl Pool {
                     let (_, &mut cut, _) = lo.select_nth_unstable_by(m - 1, |a, b| b.total_cmp(a));
                     for j in 0..len {
                         if approx[j] as f64 + bound[j] >= cut {
-                            let sim = dot(x, self.bank.context(j));
+                            let sim = self.bank.sim(x, j);
                             top.push(Nb {
                                 pos: j as u32,
                                 sim,
@@ -406,7 +415,7 @@ impl Pool {
             }
             None => {
                 for j in 0..len {
-                    let sim = dot(x, self.bank.context(j));
+                    let sim = self.bank.sim(x, j);
                     top.push(Nb {
                         pos: j as u32,
                         sim,
@@ -429,7 +438,7 @@ impl Pool {
                         Some(w) => self.key(up, at, self.clock[j]) >= w.key,
                     };
                     if reach {
-                        let sim = dot(x, self.bank.context(j));
+                        let sim = self.bank.sim(x, j);
                         if newcomer_beats(j, sim) {
                             rev.push((j, sim));
                         }
@@ -441,7 +450,7 @@ impl Pool {
                     for j in 0..len {
                         let up = self.key(approx[j] as f64 + bound[j], self.clock[j], at);
                         if up >= cut {
-                            let sim = dot(x, self.bank.context(j));
+                            let sim = self.bank.sim(x, j);
                             top.push(Nb {
                                 pos: j as u32,
                                 sim,
@@ -467,7 +476,7 @@ impl Pool {
         let mut top = scan.top.clone();
         let mut rev = scan.rev.clone();
         for j in scan.pool_len..len {
-            let sim = dot(x, self.bank.context(j));
+            let sim = self.bank.sim(x, j);
             top.push(Nb {
                 pos: j as u32,
                 sim,
@@ -546,6 +555,14 @@ impl Pool {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::bank::dot_f32;
+
+    /// The cosine the pool computes between a newcomer `x` and an older entry `c`: against the
+    /// entry's f32 copy (its bank is compact).
+    fn sim_to_entry(x: &[f64], c: &[f64]) -> f64 {
+        let c32: Vec<f32> = c.iter().map(|&v| v as f32).collect();
+        dot_f32(x, &c32)
+    }
 
     fn unit(v: &[f64]) -> Vec<f64> {
         let n = v.iter().map(|x| x * x).sum::<f64>().sqrt();
@@ -563,7 +580,7 @@ mod tests {
     /// ranking over all other entries.
     fn check(count: usize, dim: usize, half_life: f64, quantise: bool) {
         let mut state = 17u64;
-        let mut pool = Pool::new(1, 1, 6, 4.0, half_life);
+        let mut pool = Pool::new(1, 1, 6, 4.0, half_life).compact(true);
         let mut ctx = Vec::new();
         let mut clocks = Vec::new();
         for s in 0..count as u64 {
@@ -588,7 +605,12 @@ mod tests {
             let mut all: Vec<Nb> = (0..ctx.len())
                 .filter(|&i| i != j)
                 .map(|i| {
-                    let sim = dot(&ctx[j], &ctx[i]);
+                    // Computed once, when the newer of the two joined.
+                    let sim = if i > j {
+                        sim_to_entry(&ctx[i], &ctx[j])
+                    } else {
+                        sim_to_entry(&ctx[j], &ctx[i])
+                    };
                     Nb {
                         pos: i as u32,
                         sim,
@@ -606,8 +628,8 @@ mod tests {
     /// Scanning with the cosines given (by `seq`) builds the same pool as scanning.
     fn check_given_cosines(count: usize, half_life: f64) {
         let mut state = 5u64;
-        let mut scanned = Pool::new(2, 1, 6, 4.0, half_life);
-        let mut given = Pool::new(2, 1, 6, 4.0, half_life);
+        let mut scanned = Pool::new(2, 1, 6, 4.0, half_life).compact(true);
+        let mut given = Pool::new(2, 1, 6, 4.0, half_life).compact(true);
         let mut ctx: Vec<Vec<f64>> = Vec::new();
         for s in 0..count as u64 {
             let x = unit(&(0..5).map(|_| rnd(&mut state)).collect::<Vec<_>>());
@@ -616,7 +638,7 @@ mod tests {
             let seq = 3 * s + 1;
             let mut sims = vec![f64::NAN; seq as usize];
             for (j, c) in ctx.iter().enumerate() {
-                sims[3 * j + 1] = dot(&x, c);
+                sims[3 * j + 1] = sim_to_entry(&x, c);
             }
             let a = scanned.scan(&x, clock);
             let b = given.scan_by_seq(&sims, clock);
