@@ -446,7 +446,8 @@ mod tests {
         let s = scaled(&big, 448).unwrap();
         assert_eq!((s.width, s.height, s.rgb.len()), (597, 448, 597 * 448 * 3));
         assert_eq!(s.pts_s, 1.5);
-        let tall = scaled(&f(480, 1000), 448).unwrap();
+        let tall_frame = f(480, 1000);
+        let tall = scaled(&tall_frame, 448).unwrap();
         assert_eq!((tall.width, tall.height), (448, 933));
         let small = f(300, 200);
         assert!(matches!(

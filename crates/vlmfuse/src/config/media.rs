@@ -144,20 +144,6 @@ impl Default for MediaConfig {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    /// By default frames are decoded at the clip's own size: in-process models' processors
-    /// resize them as their references do.
-    #[test]
-    fn frames_are_decoded_at_their_own_size_by_default() {
-        let o = super::MediaConfig::default().sample_options();
-        assert!(matches!(o.size, vlmfuse_media::FrameSize::Native), "{o:?}");
-        let shipped: toml::Value =
-            toml::from_str(include_str!("../../../../config/default.toml")).unwrap();
-        assert_eq!(shipped["media"]["frame_short_side"].as_integer(), Some(0));
-    }
-}
-
 impl MediaConfig {
     pub fn limits(&self) -> vlmfuse_media::MediaLimits {
         vlmfuse_media::MediaLimits {
@@ -179,5 +165,19 @@ impl MediaConfig {
                 vlmfuse_media::FrameSize::ShortSide(self.frame_short_side)
             },
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    /// By default frames are decoded at the clip's own size: in-process models' processors
+    /// resize them as their references do.
+    #[test]
+    fn frames_are_decoded_at_their_own_size_by_default() {
+        let o = super::MediaConfig::default().sample_options();
+        assert!(matches!(o.size, vlmfuse_media::FrameSize::Native), "{o:?}");
+        let shipped: toml::Value =
+            toml::from_str(include_str!("../../../../config/default.toml")).unwrap();
+        assert_eq!(shipped["media"]["frame_short_side"].as_integer(), Some(0));
     }
 }
