@@ -119,41 +119,46 @@ impl Ord for Worst {
 /// products changes it only by rounding.
 #[inline]
 pub fn dot(a: &[f64], b: &[f64]) -> f64 {
-    let mut acc = [0.0f64; 4];
-    let ca = a.chunks_exact(4);
-    let cb = b.chunks_exact(4);
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
-        acc[0] += x[0] * y[0];
-        acc[1] += x[1] * y[1];
-        acc[2] += x[2] * y[2];
-        acc[3] += x[3] * y[3];
-    }
-    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
-    for (x, y) in ra.iter().zip(rb) {
-        s += x * y;
-    }
-    s
+    dot_with(a, b)
 }
 
 /// [`dot`] of an f64 query with an f32 entry widened to f64, in the same order.
 #[inline]
 pub fn dot_f32(a: &[f64], b: &[f32]) -> f64 {
+    dot_with(a, b)
+}
+
+/// Four interleaved f64 accumulators (so it vectorises), then the tail: one summation order
+/// for every element type, so that f64 and f32 banks differ only by their values.
+#[inline(always)]
+fn dot_with<T: Copy + Into<f64>>(a: &[f64], b: &[T]) -> f64 {
     let mut acc = [0.0f64; 4];
     let ca = a.chunks_exact(4);
     let cb = b.chunks_exact(4);
     let (ra, rb) = (ca.remainder(), cb.remainder());
     for (x, y) in ca.zip(cb) {
-        acc[0] += x[0] * y[0] as f64;
-        acc[1] += x[1] * y[1] as f64;
-        acc[2] += x[2] * y[2] as f64;
-        acc[3] += x[3] * y[3] as f64;
+        acc[0] += x[0] * y[0].into();
+        acc[1] += x[1] * y[1].into();
+        acc[2] += x[2] * y[2].into();
+        acc[3] += x[3] * y[3].into();
     }
     let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
     for (x, y) in ra.iter().zip(rb) {
-        s += x * *y as f64;
+        s += x * (*y).into();
     }
     s
+}
+
+/// The `global` cell of a report `r` against a truth `y`: `[r*y, (1-r)*y, r*(1-y),
+/// (1-r)*(1-y)]`.
+#[inline]
+fn cell(r: u8, y: u8) -> usize {
+    match (r, y) {
+        (1, 1) => 0,
+        (0, 1) => 1,
+        (1, 0) => 2,
+        _ => 3,
+    }
 }
 
 impl Bank {
@@ -258,14 +263,7 @@ impl Bank {
                 let r = if p { reports[i * self.l + k] } else { 0 };
                 self.reports.push(r);
                 if p {
-                    let y = truth[k];
-                    let cell = match (r, y) {
-                        (1, 1) => 0,
-                        (0, 1) => 1,
-                        (1, 0) => 2,
-                        _ => 3,
-                    };
-                    self.global[i * self.l + k][cell] += 1;
+                    self.global[i * self.l + k][cell(r, truth[k])] += 1;
                 }
             }
         }
@@ -316,13 +314,8 @@ impl Bank {
                     continue;
                 }
                 for k in 0..l {
-                    let cell = match (self.report(pos, i, k), self.truth(pos, k)) {
-                        (1, 1) => 0,
-                        (0, 1) => 1,
-                        (1, 0) => 2,
-                        _ => 3,
-                    };
-                    self.global[i * l + k][cell] += 1;
+                    let c = cell(self.report(pos, i, k), self.truth(pos, k));
+                    self.global[i * l + k][c] += 1;
                 }
             }
             for k in 0..l {

@@ -118,9 +118,8 @@ impl Pool {
 
     /// Removes the entries with `dead[pos]` true and renumbers the others, keeping their order
     /// (the bounded pool's retention). Neighbour lists lose the removed entries, so lists may be
-    /// shorter than `kmax` until later rounds fill them again. Returns the new position of every
-    /// old position (`None` for the removed).
-    pub fn evict(&mut self, dead: &[bool]) -> Vec<Option<u32>> {
+    /// shorter than `kmax` until later rounds fill them again.
+    pub fn evict(&mut self, dead: &[bool]) {
         let len = self.len();
         debug_assert_eq!(dead.len(), len);
         let mut map = vec![None; len];
@@ -174,7 +173,6 @@ impl Pool {
             self.worst_sim = (0..w).map(|p| self.worst_of(p)).collect();
         }
         self.epoch += 1;
-        map
     }
 
     pub fn len(&self) -> usize {
