@@ -2128,7 +2128,7 @@ fn caption_of_driving_on(sents: &[Sentence], ms: &[Mention]) -> bool {
     }
     let advice = sents
         .iter()
-        .any(|s| (0..s.words.len()).any(|k| any_seq_at(s, k, STRONG_ADVICE)));
+        .any(|s| has_any(s, 0, s.words.len(), STRONG_ADVICE));
     let hazard = sents
         .iter()
         .any(|s| has_any(s, 0, s.words.len(), CAPTION_HAZARD));

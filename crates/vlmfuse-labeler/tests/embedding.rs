@@ -30,6 +30,64 @@ fn labels(text: &str) -> Vec<String> {
     labeler().label_blocking(text).unwrap().labels
 }
 
+/// Every `(text, labels)` case labelled as given (labels in any order), all failures listed.
+fn assert_cases(cases: &[(&str, &[&str])]) {
+    let onto = Ontology::default_driving();
+    let mut failures = Vec::new();
+    for (text, want) in cases {
+        let mut want: Vec<String> = want.iter().map(|s| s.to_string()).collect();
+        want.sort_by_key(|id| onto.index_of(id));
+        let got = labels(text);
+        if got != want {
+            failures.push(format!("{text:?}: got {got:?}, want {want:?}"));
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// The served labeler on the test split of `data` (in rounds of `round` answers) against
+/// floors: at least `min_answers` answers, micro-F1, macro-F1 and every label's F1.
+fn assert_floors(
+    data: &std::path::Path,
+    what: &str,
+    round: usize,
+    min_answers: usize,
+    (micro, macro_, label): (f64, f64, f64),
+) {
+    let l = labeler();
+    let onto = Ontology::default_driving();
+    let data = load_dataset(data).unwrap();
+    let test: Vec<_> = data.iter().filter(|e| e.split == "test").collect();
+    assert!(test.len() >= min_answers, "{} test answers", test.len());
+    let truth: Vec<_> = test
+        .iter()
+        .map(|e| to_mask(&onto, &e.labels).unwrap())
+        .collect();
+    let texts: Vec<&str> = test.iter().map(|e| e.text.as_str()).collect();
+    let mut pred = Vec::new();
+    for chunk in texts.chunks(round) {
+        for o in l.label_batch_blocking(chunk).unwrap() {
+            pred.push(to_mask(&onto, &o.labels).unwrap());
+        }
+    }
+    let f = f1_scores(&truth, &pred);
+    eprintln!(
+        "embedding labeler, {what}: micro-F1 {:.3}, macro-F1 {:.3}",
+        f.micro, f.macro_
+    );
+    assert!(f.micro >= micro, "micro-F1 {:.3} below {micro}", f.micro);
+    assert!(
+        f.macro_ >= macro_,
+        "macro-F1 {:.3} below {macro_}",
+        f.macro_
+    );
+    for (k, lab) in onto.labels().iter().enumerate() {
+        let col = |m: &[Vec<bool>]| m.iter().map(|r| vec![r[k]]).collect::<Vec<_>>();
+        let fk = f1_scores(&col(&truth), &col(&pred)).micro;
+        assert!(fk >= label, "{}: F1 {fk:.3} below {label}", lab.id);
+    }
+}
+
 /// The errors the issue reports from the previous matcher, and its examples.
 #[test]
 #[ignore = "needs assets: scripts/fetch-assets.sh"]
@@ -76,17 +134,7 @@ fn issue_examples_are_read_as_the_guidelines_say() {
         ),
         ("Keep left and continue.", &["drive_as_normal"]),
     ];
-    let onto = Ontology::default_driving();
-    let mut failures = Vec::new();
-    for (text, want) in cases {
-        let mut want: Vec<String> = want.iter().map(|s| s.to_string()).collect();
-        want.sort_by_key(|id| onto.index_of(id));
-        let got = labels(text);
-        if got != want {
-            failures.push(format!("{text:?}: got {got:?}, want {want:?}"));
-        }
-    }
-    assert!(failures.is_empty(), "{}", failures.join("\n"));
+    assert_cases(cases);
 }
 
 #[test]
@@ -264,34 +312,13 @@ fn custom_ontology_works_from_names_and_descriptions() {
 #[test]
 #[ignore = "needs assets: scripts/fetch-assets.sh"]
 fn test_split_meets_the_targets() {
-    let l = labeler();
-    let onto = Ontology::default_driving();
-    let data = load_dataset(&default_dataset_path()).unwrap();
-    let test: Vec<_> = data.iter().filter(|e| e.split == "test").collect();
-    assert!(test.len() >= 250);
-    let truth: Vec<_> = test
-        .iter()
-        .map(|e| to_mask(&onto, &e.labels).unwrap())
-        .collect();
-    let texts: Vec<&str> = test.iter().map(|e| e.text.as_str()).collect();
-    let mut pred = Vec::new();
-    for chunk in texts.chunks(3) {
-        for o in l.label_batch_blocking(chunk).unwrap() {
-            pred.push(to_mask(&onto, &o.labels).unwrap());
-        }
-    }
-    let f = f1_scores(&truth, &pred);
-    eprintln!(
-        "embedding labeler, test split: micro-F1 {:.3}, macro-F1 {:.3}",
-        f.micro, f.macro_
+    assert_floors(
+        &default_dataset_path(),
+        "test split",
+        3,
+        250,
+        (0.85, 0.80, 0.70),
     );
-    assert!(f.micro >= 0.85, "micro-F1 {:.3} below 0.85", f.micro);
-    assert!(f.macro_ >= 0.80, "macro-F1 {:.3} below 0.80", f.macro_);
-    for (k, lab) in onto.labels().iter().enumerate() {
-        let col = |m: &[Vec<bool>]| m.iter().map(|r| vec![r[k]]).collect::<Vec<_>>();
-        let fk = f1_scores(&col(&truth), &col(&pred)).micro;
-        assert!(fk >= 0.70, "{}: F1 {fk:.3} below 0.70", lab.id);
-    }
 }
 
 /// The kinds of miss the labeler-round-two issue reports in other answer styles (its
@@ -370,17 +397,7 @@ fn other_styles_kinds_are_read_as_the_guidelines_say() {
             &["brake", "maintain_safe_distance", "adjust_speed_due_to_weather"],
         ),
     ];
-    let onto = Ontology::default_driving();
-    let mut failures = Vec::new();
-    for (text, want) in cases {
-        let mut want: Vec<String> = want.iter().map(|s| s.to_string()).collect();
-        want.sort_by_key(|id| onto.index_of(id));
-        let got = labels(text);
-        if got != want {
-            failures.push(format!("{text:?}: got {got:?}, want {want:?}"));
-        }
-    }
-    assert!(failures.is_empty(), "{}", failures.join("\n"));
+    assert_cases(cases);
 }
 
 /// Floors on the held-out part of the second set (other styles): the labeler-round-two issue's
@@ -388,34 +405,13 @@ fn other_styles_kinds_are_read_as_the_guidelines_say() {
 #[test]
 #[ignore = "needs assets: scripts/fetch-assets.sh"]
 fn other_styles_test_split_meets_the_targets() {
-    let l = labeler();
-    let onto = Ontology::default_driving();
-    let data = load_dataset(&styles_dataset_path()).unwrap();
-    let test: Vec<_> = data.iter().filter(|e| e.split == "test").collect();
-    assert!(test.len() >= 150, "{} test answers", test.len());
-    let truth: Vec<_> = test
-        .iter()
-        .map(|e| to_mask(&onto, &e.labels).unwrap())
-        .collect();
-    let texts: Vec<&str> = test.iter().map(|e| e.text.as_str()).collect();
-    let mut pred = Vec::new();
-    for chunk in texts.chunks(5) {
-        for o in l.label_batch_blocking(chunk).unwrap() {
-            pred.push(to_mask(&onto, &o.labels).unwrap());
-        }
-    }
-    let f = f1_scores(&truth, &pred);
-    eprintln!(
-        "embedding labeler, other styles test split: micro-F1 {:.3}, macro-F1 {:.3}",
-        f.micro, f.macro_
+    assert_floors(
+        &styles_dataset_path(),
+        "other styles test split",
+        5,
+        150,
+        (0.93, 0.90, 0.75),
     );
-    assert!(f.micro >= 0.93, "micro-F1 {:.3} below 0.93", f.micro);
-    assert!(f.macro_ >= 0.90, "macro-F1 {:.3} below 0.90", f.macro_);
-    for (k, lab) in onto.labels().iter().enumerate() {
-        let col = |m: &[Vec<bool>]| m.iter().map(|r| vec![r[k]]).collect::<Vec<_>>();
-        let fk = f1_scores(&col(&truth), &col(&pred)).micro;
-        assert!(fk >= 0.75, "{}: F1 {fk:.3} below 0.75", lab.id);
-    }
 }
 
 /// The labeler as the service runs it: behind its worker thread.
