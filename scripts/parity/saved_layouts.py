@@ -41,22 +41,12 @@ from safetensors.torch import load_file
 warnings.filterwarnings("ignore")
 os.environ.setdefault("TRANSFORMERS_VERBOSITY", "error")
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from qwen3_vl import frames  # noqa: E402  (the synthetic clip the Rust tests rebuild)
+
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".."))
 OUT = os.path.join(ROOT, "tests", "data", "parity", "saved_5_23")
 WEIGHT_SUFFIXES = (".safetensors", ".bin", ".pt")
-
-
-def frames(n, w, h, k0=0):
-    """The synthetic clip of scripts/parity/qwen3_vl.py (integer formula the Rust tests share)."""
-    y, x = np.mgrid[0:h, 0:w].astype(np.int64)
-    out = []
-    for k in range(k0, k0 + n):
-        chans = []
-        for c in range(3):
-            v = 3 * x * x + 5 * y + 71 * c + 29 * k + (x * y) % 17 + 60 * (((x >> 2) + (y >> 2)) & 1)
-            chans.append(v % 256)
-        out.append(np.stack(chans, -1))
-    return np.stack(out).astype(np.uint8)
 
 
 def tensors(dir_):

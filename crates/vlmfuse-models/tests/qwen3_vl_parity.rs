@@ -67,6 +67,19 @@ fn ids(v: &Value) -> Vec<u32> {
         .collect()
 }
 
+/// Normalised pixels (mean and std 0.5) against the reference's grey levels: the largest
+/// difference in grey levels and how many values differ at all.
+fn grey_level_diff(want: &[u8], pixels: &[f32]) -> (f32, usize) {
+    let mut worst = 0f32;
+    let mut off = 0usize;
+    for (&g, &x) in want.iter().zip(pixels) {
+        let d = (x * 127.5 + 127.5 - g as f32).abs();
+        worst = worst.max(d);
+        off += (d > 1e-3) as usize;
+    }
+    (worst, off)
+}
+
 fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len());
     a.iter()
@@ -330,14 +343,7 @@ fn preprocessing_matches_the_video_processor() {
             v.input.pixel_values.len(),
             "{name}: pixel count"
         );
-        let mut worst = 0f32;
-        let mut off = 0usize;
-        for (&g, &x) in want.iter().zip(&v.input.pixel_values) {
-            let ours = x * 127.5 + 127.5;
-            let d = (ours - g as f32).abs();
-            worst = worst.max(d);
-            off += (d > 1e-3) as usize;
-        }
+        let (worst, off) = grey_level_diff(&want, &v.input.pixel_values);
         eprintln!(
             "{name}: {}x{} -> {}x{}, grid {:?}, max |grey level diff| {worst:.4}, {off} of {} values off",
             w, h, v.resized.1, v.resized.0, v.input.grid_thw, want.len()
@@ -662,10 +668,6 @@ fn a_nested_patch16_processor_reads_and_runs_as_transformers() {
         .decode(reference["grey_u8"].as_str().unwrap())
         .unwrap();
     assert_eq!(want.len(), v.input.pixel_values.len());
-    let worst = want
-        .iter()
-        .zip(&v.input.pixel_values)
-        .map(|(&g, &x)| (x * 127.5 + 127.5 - g as f32).abs())
-        .fold(0f32, f32::max);
+    let (worst, _) = grey_level_diff(&want, &v.input.pixel_values);
     assert!(worst <= 1.0 + 1e-3, "pixels off by {worst} grey levels");
 }
