@@ -69,7 +69,7 @@ unsafe fn dot_f32_avx2(a: &[f32], b: &[f32]) -> f32 {
 
 /// Fills `out[j]` with the f32 similarity of every entry (AVX2 + FMA where the processor has
 /// them, chosen at run time; the portable loop elsewhere).
-fn scan_f32(mirror: &[f32], x: &[f32], dim: usize, out: &mut Vec<f32>) {
+pub(crate) fn scan_f32(mirror: &[f32], x: &[f32], dim: usize, out: &mut Vec<f32>) {
     out.clear();
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
@@ -210,12 +210,31 @@ impl Bank {
         &self.contexts[pos * self.dim..(pos + 1) * self.dim]
     }
 
+    /// Every entry's f32 copy, in bank order.
+    pub fn f32_rows(&self) -> &[f32] {
+        &self.mirror
+    }
+
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+
+    /// The f32 copy of entry `pos`'s context (the context itself in a compact bank).
+    pub fn f32_row(&self, pos: usize) -> &[f32] {
+        &self.mirror[pos * self.dim..(pos + 1) * self.dim]
+    }
+
     pub fn seq(&self, pos: usize) -> u64 {
         self.seqs[pos]
     }
 
     pub fn present(&self, pos: usize, i: usize) -> bool {
         self.present[pos * self.n + i] != 0
+    }
+
+    /// Entry `pos`'s reports, `n * L` of them.
+    pub fn reports_of(&self, pos: usize) -> &[u8] {
+        &self.reports[pos * self.n * self.l..(pos + 1) * self.n * self.l]
     }
 
     pub fn report(&self, pos: usize, i: usize, k: usize) -> u8 {

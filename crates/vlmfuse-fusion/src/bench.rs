@@ -28,9 +28,15 @@ pub struct SynthRound {
 pub struct Synth {
     rng: ChaCha8Rng,
     centres: Vec<Vec<f64>>,
+    /// Per centre, the directions its scenes vary along ([`Synth::scenes`]); empty: isotropic
+    /// noise only.
+    factors: Vec<Vec<Vec<f64>>>,
     reporters: usize,
     labels: usize,
 }
+
+/// Directions of variation per scene type in [`Synth::scenes`].
+pub const SCENE_FACTORS: usize = 8;
 
 impl Synth {
     /// Rounds of context dimension `dim`, `reporters` reporters (all present) and `labels` labels.
@@ -42,17 +48,56 @@ impl Synth {
         Self {
             rng,
             centres,
+            factors: Vec::new(),
             reporters,
             labels,
         }
     }
 
+    /// Like [`Synth::new`], but contexts as image embeddings are: each of the twelve scene
+    /// types varies along [`SCENE_FACTORS`] directions of its own (light, traffic, road, ...),
+    /// with a little isotropic noise on top, so that a round's nearest neighbours are the rounds
+    /// of similar scenes. `new`'s contexts are a centre plus noise in every one of the `dim`
+    /// directions: there the exact neighbours are decided by noise, and no index can find them
+    /// without reading most of a cluster.
+    pub fn scenes(seed: u64, dim: usize, reporters: usize, labels: usize) -> Self {
+        let mut s = Self::new(seed, dim, reporters, labels);
+        s.factors = (0..s.centres.len())
+            .map(|_| {
+                (0..SCENE_FACTORS)
+                    .map(|_| (0..dim).map(|_| s.rng.random::<f64>() - 0.5).collect())
+                    .collect()
+            })
+            .collect();
+        s
+    }
+
+    /// The same scene types (centres and factors), another stream of rounds.
+    pub fn reseeded(&self, seed: u64) -> Self {
+        Self {
+            rng: ChaCha8Rng::seed_from_u64(seed),
+            centres: self.centres.clone(),
+            factors: self.factors.clone(),
+            reporters: self.reporters,
+            labels: self.labels,
+        }
+    }
+
     pub fn round(&mut self) -> SynthRound {
         let c = self.rng.random_range(0..self.centres.len());
-        let x: Vec<f64> = self.centres[c]
+        let noise = if self.factors.is_empty() { 0.4 } else { 0.05 };
+        let mut x: Vec<f64> = self.centres[c]
             .iter()
-            .map(|v| v + 0.4 * (self.rng.random::<f64>() - 0.5))
+            .map(|v| v + noise * (self.rng.random::<f64>() - 0.5))
             .collect();
+        if let Some(fs) = self.factors.get(c) {
+            for f in fs {
+                let z = 0.6 * (self.rng.random::<f64>() - 0.5);
+                for (d, v) in x.iter_mut().zip(f) {
+                    *d += z * v;
+                }
+            }
+        }
         let norm = x.iter().map(|v| v * v).sum::<f64>().sqrt();
         let context = x.iter().map(|v| v / norm).collect();
         let truth: Vec<u8> = (0..self.labels)

@@ -145,7 +145,7 @@ pub struct ReporterStats {
 /// the methods' state). A stored copy written under another layout is not read back: the store
 /// then replays the events instead. Bump it with any change to a field of the engine or of the
 /// state it owns; the `layout_is_pinned` test fails until it is bumped and its digest updated.
-pub const ENGINE_LAYOUT: u32 = 3;
+pub const ENGINE_LAYOUT: u32 = 4;
 
 /// The engine: shared state plus the configured method's own. Serialisable so that the store
 /// can keep a snapshot and replay only the events after it; a snapshot read back is the very
@@ -260,6 +260,13 @@ impl Engine {
     /// `[fusion.adaptive] pool_max`. `None` under `paper`.
     pub fn pool_sizes(&self) -> Option<(usize, usize)> {
         self.method.pool_sizes()
+    }
+
+    /// `adaptive`'s approximate index: whether it is in use, and the share of the exact
+    /// neighbours (by cosine, `max(k, k_prior)` per query) that its scans find for these
+    /// unit-norm contexts (1 when the scans are exact). `None` under `paper`.
+    pub fn neighbour_recall(&self, contexts: &[Vec<f64>]) -> Option<(bool, f64)> {
+        self.method.neighbour_recall(contexts, self.labelled())
     }
 
     /// Whether the decisions served now are majority vote's: `adaptive`'s vote fallback, until

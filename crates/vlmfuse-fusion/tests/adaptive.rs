@@ -330,8 +330,13 @@ fn layout_is_pinned() {
     let l = Ontology::paper().len();
     let events = stream(3, 60, l);
     let mut paths = Vec::new();
+    let mut approximate = adaptive();
+    // The approximate index in use too, so that its fields are pinned.
+    approximate.adaptive.ann_min = 20;
+    approximate.adaptive.ann_cells = 4;
     for cfg in [
         adaptive(),
+        approximate,
         FusionConfig {
             method: Method::Paper,
             ..FusionConfig::default()
@@ -348,7 +353,7 @@ fn layout_is_pinned() {
         h ^= b as u64;
         h = h.wrapping_mul(0x100000001b3);
     }
-    let pinned: (u32, u64) = (3, 0x5e40e584919c41ad);
+    let pinned: (u32, u64) = (4, 0x2cfedc3c3f4ba7bb);
     assert_eq!(
         (vlmfuse_fusion::ENGINE_LAYOUT, h),
         pinned,

@@ -651,6 +651,44 @@ fn a_bounded_pool_snapshot_plus_its_tail_is_the_full_replay_bit_for_bit() {
     assert_eq!(bytes(&snap), bytes(&live), "!= the engine that lived it");
 }
 
+/// With the approximate kNN index in use before the snapshot (and, in the second setting, fixed
+/// during the tail), with evictions on both sides: snapshot + tail is the full replay, bit for
+/// bit, and both search alike afterwards.
+#[test]
+fn an_approximate_index_snapshot_plus_its_tail_is_the_full_replay_bit_for_bit() {
+    for ann_min in [20, 100] {
+        let cfg = FusionConfig {
+            method: vlmfuse_fusion::Method::Adaptive,
+            adaptive: vlmfuse_fusion::AdaptiveConfig {
+                pool_max: 40,
+                ann_min,
+                ann_cells: 6,
+                ann_probe: 2,
+                ann_ef: 60,
+                ..Default::default()
+            },
+            ..FusionConfig::default()
+        };
+        let (dir, live) = with_snapshot_cfg(cfg.clone(), 80, 170);
+        let probes: Vec<Vec<f64>> = (900..920)
+            .map(|i| live.parse(&record(i)).unwrap().0.context)
+            .collect();
+        let (active, _) = live.neighbour_recall(&probes).unwrap();
+        assert!(active, "ann_min {ann_min}: the approximate index is in use");
+        let (snap, rep, full) = load_both_cfg(dir.path(), cfg);
+        assert!(rep.snapshot.is_some(), "the snapshot is used");
+        assert_eq!(
+            bytes(&snap),
+            bytes(&full),
+            "ann_min {ann_min}: snapshot + tail != full replay"
+        );
+        assert_eq!(bytes(&snap), bytes(&live), "ann_min {ann_min}: != the engine that lived it");
+        let probe = live.parse(&record(999)).unwrap().0;
+        assert_eq!(snap.infer(&probe), full.infer(&probe));
+        assert_eq!(snap.infer(&probe), live.infer(&probe));
+    }
+}
+
 #[test]
 fn a_snapshot_of_the_whole_history_leaves_no_tail() {
     let (dir, live) = with_snapshot(vlmfuse_fusion::Method::Adaptive, 60, 60);

@@ -41,6 +41,21 @@ pub struct BenchArgs {
     /// Without it, the default.
     #[arg(long)]
     pub pool_max: Option<usize>,
+    /// `[fusion.adaptive] ann_min` of the scale run (0: exact kNN only). Without it, the
+    /// default.
+    #[arg(long)]
+    pub ann_min: Option<usize>,
+    /// `[fusion.adaptive] ann_probe` of the scale run. Without it, the default.
+    #[arg(long)]
+    pub ann_probe: Option<usize>,
+    /// Contexts of the scale run: `scenes` (each scene type varies along a few directions of
+    /// its own, as image embeddings do) or `isotropic` (a centre plus noise in every
+    /// direction, where the exact neighbours are decided by noise).
+    #[arg(long, default_value = "scenes", value_parser = ["scenes", "isotropic"])]
+    pub contexts: String,
+    /// Skip timing the restart by full replay (as long as the import itself at scale).
+    #[arg(long)]
+    pub no_full_replay: bool,
 }
 
 fn parse_method(s: &str) -> Result<Method, String> {
@@ -59,25 +74,39 @@ fn rss_bytes() -> u64 {
         .map_or(0, |pages| pages * 4096)
 }
 
+fn synth_for(args: &BenchArgs, seed: u64) -> vlmfuse_fusion::bench::Synth {
+    use vlmfuse_fusion::bench::Synth;
+    let l = Ontology::paper().len();
+    if args.contexts == "isotropic" {
+        Synth::new(seed, args.dim, args.reporters, l)
+    } else {
+        Synth::scenes(seed, args.dim, args.reporters, l)
+    }
+}
+
 fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
-    use vlmfuse_fusion::bench::{reporter_names, Synth};
+    use vlmfuse_fusion::bench::reporter_names;
     use vlmfuse_fusion::{Engine, LabelledRound, RoundRecord};
     use vlmfuse_store::{NewRound, Store, StoredFeedback};
     let ontology = Ontology::paper();
     let l = ontology.len();
     let names = reporter_names(args.reporters);
+    let defaults = vlmfuse_fusion::AdaptiveConfig::default();
     println!(
-        "state at scale, method {}, d = {}, n = {}, pool_max = {}, one round in ten labelled; restart = open + rebuild of the engine (the service's start before it listens)",
+        "state at scale, method {}, {} contexts, d = {}, n = {}, pool_max = {}, ann_min = {}, ann_probe = {}, one round in ten labelled; restart = open + rebuild of the engine (the service's start before it listens)",
         args.method.name(),
+        args.contexts,
         args.dim,
         args.reporters,
-        args.pool_max.unwrap_or(vlmfuse_fusion::AdaptiveConfig::default().pool_max)
+        args.pool_max.unwrap_or(defaults.pool_max),
+        args.ann_min.unwrap_or(defaults.ann_min),
+        args.ann_probe.unwrap_or(defaults.ann_probe),
     );
     for &n in &args.scale {
         let tmp = tempfile::tempdir()?;
         let file = tmp.path().join("rounds.jsonl");
         {
-            let mut synth = Synth::new(7, args.dim, args.reporters, l);
+            let mut synth = synth_for(args, 7);
             let mut w = std::io::BufWriter::new(std::fs::File::create(&file)?);
             for t in 0..n {
                 let s = synth.round();
@@ -110,6 +139,12 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
         if let Some(m) = args.pool_max {
             cfg.fusion.adaptive.pool_max = m;
         }
+        if let Some(m) = args.ann_min {
+            cfg.fusion.adaptive.ann_min = m;
+        }
+        if let Some(p) = args.ann_probe {
+            cfg.fusion.adaptive.ann_probe = p;
+        }
         cfg.server.data_dir = data.clone();
         let t = Instant::now();
         let done = crate::import::import(&cfg, &file, 2000, 20, false)?;
@@ -131,13 +166,17 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
             "the import left no usable snapshot: {:?}",
             rep.skipped_snapshots
         );
-        let t = Instant::now();
-        let mut full = fresh()?;
-        store.load_engine_full(&mut full)?;
-        let full_s = t.elapsed().as_secs_f64();
-        drop(full);
+        let full_s = if args.no_full_replay {
+            f64::NAN
+        } else {
+            let t = Instant::now();
+            let mut full = fresh()?;
+            store.load_engine_full(&mut full)?;
+            t.elapsed().as_secs_f64()
+        };
         // Live rounds against the loaded state, as the writer runs them.
-        let mut synth = Synth::new(8, args.dim, args.reporters, l);
+        // More rounds of the same scene types as the imported ones.
+        let mut synth = synth_for(args, 7).reseeded(8);
         let mut lat = Vec::with_capacity(args.rounds);
         let mut eng = Vec::with_capacity(args.rounds);
         for (t, seq) in (0..args.rounds).zip(rep.next_seq..) {
@@ -186,13 +225,19 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
         }
         lat.sort_by(f64::total_cmp);
         eng.sort_by(f64::total_cmp);
+        let queries: Vec<Vec<f64>> = (0..200).map(|_| synth.round().round.context).collect();
+        let recall = match engine.neighbour_recall(&queries) {
+            Some((true, r)) => format!("approximate kNN, recall {r:.3} of the exact neighbours"),
+            Some((false, _)) => "exact kNN".to_string(),
+            None => "the paper method's exact kNN".to_string(),
+        };
         let pct = |p: f64| vlmfuse_fusion::bench::percentile(&lat, p);
         let epct = |p: f64| vlmfuse_fusion::bench::percentile(&eng, p);
         println!(
             "{n:>9} rounds ({} labelled): import {import_s:.1} s ({:.0} rounds/s); snapshot {:.0} MB; \
              restart from the snapshot {from_snapshot_s:.2} s, by full replay {full_s:.2} s \
              ({:.0}x); per live round: engine p50 {:.2} ms, p99 {:.2} ms; with its commits (an \
-             fsync each) p50 {:.2} ms, p99 {:.2} ms; RSS {:.0} MB",
+             fsync each) p50 {:.2} ms, p99 {:.2} ms; RSS {:.0} MB; {recall}",
             done.labelled,
             done.rounds as f64 / import_s,
             snap_bytes as f64 / 1e6,

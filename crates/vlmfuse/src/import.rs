@@ -273,63 +273,82 @@ fn ingest(
         labelled: 0,
     };
     let name = file.display().to_string();
-    for (line, read, text) in lines(file)? {
-        if stop.load(Ordering::Relaxed) {
-            bail!("interrupted at line {line}");
-        }
-        let text = text.with_context(|| format!("{name}: line {line}"))?;
-        let rec: RoundRecord =
-            serde_json::from_str(&text).with_context(|| format!("{name}: line {line}"))?;
-        if engine.dim().is_none() {
-            engine.fix_dim(rec.context.len())?;
-        }
-        let (round, truth) = engine
-            .parse(&rec)
-            .with_context(|| format!("{name}: line {line} (changed since it was checked?)"))?;
-        let inf = engine.infer(&round);
-        engine.observe(seq, &round, &inf)?;
-        if let Some(truth) = truth {
-            let outcome = engine.credit(&inf.signals, &inf.w_used, &truth, seq);
-            fbs.push(StoredFeedback {
-                seq,
-                labelled_order: engine.labelled(),
-                rounds_before: seq + 1,
-                truth: truth.clone(),
-                outcome: outcome.clone(),
-            });
-            engine.apply(
-                &LabelledRound {
-                    seq,
-                    round: round.clone(),
-                    truth,
-                    q: inf.q.clone(),
-                },
-                Some(&outcome),
-            )?;
-            done.labelled += 1;
-        }
-        let mut stored = inf;
-        stored.scan = None;
-        rounds.push(NewRound {
-            round,
-            inference: stored,
-            request: serde_json::json!({
-                "import": { "file": name, "line": line, "id": rec.id },
-                "reports": rec.reports,
-            }),
-            created_ms: vlmfuse_store::timestamp_ms(),
+    // The file is read and its JSON parsed on a second thread, a bounded queue ahead of the
+    // engine (which must take the rounds one by one, in order): parsing a line costs about as
+    // much as the engine's work on it.
+    let lines = lines(file)?;
+    std::thread::scope(|scope| -> anyhow::Result<Imported> {
+        let (tx, rx) = std::sync::mpsc::sync_channel::<(usize, u64, anyhow::Result<RoundRecord>)>(256);
+        let reader_name = name.clone();
+        scope.spawn(move || {
+            for (line, read, text) in lines {
+                let rec = text
+                    .with_context(|| format!("{reader_name}: line {line}"))
+                    .and_then(|t| {
+                        serde_json::from_str::<RoundRecord>(&t)
+                            .with_context(|| format!("{reader_name}: line {line}"))
+                    });
+                if tx.send((line, read, rec)).is_err() {
+                    return;
+                }
+            }
         });
-        seq += 1;
-        done.rounds += 1;
-        if rounds.len() >= chunk {
-            store.insert_batch(first, &rounds, &fbs)?;
-            rounds.clear();
-            fbs.clear();
-            first = seq;
-            b.set_position(read);
+        for (line, read, rec) in rx {
+            if stop.load(Ordering::Relaxed) {
+                bail!("interrupted at line {line}");
+            }
+            let rec = rec?;
+            if engine.dim().is_none() {
+                engine.fix_dim(rec.context.len())?;
+            }
+            let (round, truth) = engine
+                .parse(&rec)
+                .with_context(|| format!("{name}: line {line} (changed since it was checked?)"))?;
+            let inf = engine.infer(&round);
+            engine.observe(seq, &round, &inf)?;
+            if let Some(truth) = truth {
+                let outcome = engine.credit(&inf.signals, &inf.w_used, &truth, seq);
+                fbs.push(StoredFeedback {
+                    seq,
+                    labelled_order: engine.labelled(),
+                    rounds_before: seq + 1,
+                    truth: truth.clone(),
+                    outcome: outcome.clone(),
+                });
+                engine.apply(
+                    &LabelledRound {
+                        seq,
+                        round: round.clone(),
+                        truth,
+                        q: inf.q.clone(),
+                    },
+                    Some(&outcome),
+                )?;
+                done.labelled += 1;
+            }
+            let mut stored = inf;
+            stored.scan = None;
+            rounds.push(NewRound {
+                round,
+                inference: stored,
+                request: serde_json::json!({
+                    "import": { "file": name, "line": line, "id": rec.id },
+                    "reports": rec.reports,
+                }),
+                created_ms: vlmfuse_store::timestamp_ms(),
+            });
+            seq += 1;
+            done.rounds += 1;
+            if rounds.len() >= chunk {
+                store.insert_batch(first, &rounds, &fbs)?;
+                rounds.clear();
+                fbs.clear();
+                first = seq;
+                b.set_position(read);
+            }
         }
-    }
-    store.insert_batch(first, &rounds, &fbs)?;
-    b.finish_and_clear();
-    Ok(done)
+        store.insert_batch(first, &rounds, &fbs)?;
+        b.finish_and_clear();
+        Ok(done)
+    })
 }

@@ -85,6 +85,13 @@ impl MethodState {
         }
     }
 
+    pub fn neighbour_recall(&self, contexts: &[Vec<f64>], at: u64) -> Option<(bool, f64)> {
+        match self {
+            MethodState::Paper(_) => None,
+            MethodState::Adaptive(a) => Some(a.neighbour_recall(contexts, at)),
+        }
+    }
+
     /// Whether unlabelled rounds change the state ([`MethodState::observe`] is not a no-op).
     pub fn observes(&self) -> bool {
         matches!(self, MethodState::Adaptive(_))

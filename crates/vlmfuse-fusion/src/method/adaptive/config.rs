@@ -128,6 +128,18 @@ pub struct AdaptiveConfig {
     /// 1e-7, no metric of the benchmark suite moves). Off, they are kept in f64 as the paper
     /// method's bank keeps them, which `paper_equivalent` needs to match it to 1e-9.
     pub compact_contexts: bool,
+    /// Pool size from which a round's neighbours are found through an approximate index (an
+    /// inverted file of k-means cells over 8-bit contexts, candidates re-scored exactly;
+    /// docs/METHOD.md §6) instead of the exact scan, whose cost grows with the pool. 0: always
+    /// exact. The cells are fixed when the pool first reaches this size.
+    pub ann_min: usize,
+    /// Cells of the index.
+    pub ann_cells: usize,
+    /// Cells searched per query (nearest centres first). More: better recall, slower.
+    pub ann_probe: usize,
+    /// Candidates (best 8-bit cosines among the searched cells) scored exactly per query; at
+    /// least `max(k, k_prior)`.
+    pub ann_ef: usize,
 
     /// Half-life of evidence, in labelled rounds: a round `a` labelled rounds older counts
     /// `2^(-a / half_life)`. 0 switches decay off.
@@ -212,6 +224,10 @@ impl Default for AdaptiveConfig {
             em_chunk: 16,
             pool_max: 100_000,
             compact_contexts: true,
+            ann_min: 20_000,
+            ann_cells: 512,
+            ann_probe: 12,
+            ann_ef: 100,
             half_life: 0.0,
             eta: 0.03,
             decay_prior: false,
@@ -260,6 +276,7 @@ impl AdaptiveConfig {
             threshold_shrink: 0.0,
             vote_fallback: false,
             compact_contexts: false,
+            ann_min: 0,
             ..Self::default()
         }
     }
@@ -343,6 +360,9 @@ impl AdaptiveConfig {
         }
         if !(0.0..=1.0).contains(&self.threshold_initial) {
             return Err("threshold_initial must lie in [0, 1]".into());
+        }
+        if self.ann_min > 0 && (self.ann_cells == 0 || self.ann_probe == 0 || self.ann_ef == 0) {
+            return Err("with ann_min > 0, ann_cells, ann_probe and ann_ef must be at least 1".into());
         }
         Ok(())
     }

@@ -18,6 +18,7 @@
 //! entries.
 
 pub mod calibrate;
+pub mod ann;
 pub mod config;
 pub mod pool;
 
@@ -156,7 +157,13 @@ impl Adaptive {
         };
         Self {
             pool: Pool::new(n, l, cfg.k.max(cfg.k_prior), cfg.tau, rank_half_life)
-                .compact(cfg.adaptive.compact_contexts),
+                .compact(cfg.adaptive.compact_contexts)
+                .approximate(
+                    cfg.adaptive.ann_min,
+                    cfg.adaptive.ann_cells,
+                    cfg.adaptive.ann_probe,
+                    cfg.adaptive.ann_ef,
+                ),
             calib: Calibrator::new(
                 l,
                 a.calib_window,
@@ -459,26 +466,30 @@ impl Adaptive {
                 }
                 w
             };
+            pool.prefetch(nb.iter().take(cfg.k.max(cfg.k_prior)).map(|n| n.0));
             for &(pos, sim) in nb.iter().take(cfg.k) {
                 let w = weight(pos, sim, true);
                 if w == 0.0 {
                     continue;
                 }
                 let t = pool.soft(pos);
+                let reps = pool.bank.reports_of(pos);
                 for (m, &i) in coalition.iter().enumerate() {
                     if !pool.bank.present(pos, i) {
                         continue;
                     }
-                    for k in 0..l {
-                        let c = &mut acc[m * l + k];
-                        let tk = t[k];
-                        if pool.bank.report(pos, i, k) != 0 {
-                            c[0] += w * tk;
-                            c[2] += w * (1.0 - tk);
-                        } else {
-                            c[1] += w * tk;
-                            c[3] += w * (1.0 - tk);
-                        }
+                    // Branch-free: a report of 1 adds `w t` and `w (1 - t)` to the first and
+                    // third cell, of 0 to the second and fourth; the other two get `x * 0 = 0`,
+                    // which leaves a non-negative sum as it was, bit for bit.
+                    let r = &reps[i * l..(i + 1) * l];
+                    for ((c, &tk), &rk) in acc[m * l..(m + 1) * l].iter_mut().zip(t).zip(r) {
+                        let (pos_w, neg_w) = (w * tk, w * (1.0 - tk));
+                        let on = (rk != 0) as u8 as f64;
+                        let off = 1.0 - on;
+                        c[0] += pos_w * on;
+                        c[1] += pos_w * off;
+                        c[2] += neg_w * on;
+                        c[3] += neg_w * off;
                     }
                 }
             }
@@ -598,8 +609,9 @@ impl Adaptive {
     /// earlier rounds indexed by `seq` (a batched GEMM's row); else the pool is scanned.
     pub fn infer(&self, cx: &Ctx, round: &Round, sims: Option<&[f64]>) -> Inference {
         let scan = match sims {
-            Some(s) => self.pool.scan_by_seq(s, cx.labelled),
-            None => self.pool.scan(&round.context, cx.labelled),
+            // Precomputed cosines are exact: the approximate index, once in use, decides instead.
+            Some(s) if !self.pool.ann_active() => self.pool.scan_by_seq(s, cx.labelled),
+            _ => self.pool.scan(&round.context, cx.labelled),
         };
         let nb: Vec<(usize, f64)> = scan.top.iter().map(|n| (n.pos as usize, n.sim)).collect();
         let signals = self.signals(cx, &round.present, &round.reports, &nb, cx.labelled);
@@ -714,6 +726,11 @@ impl Adaptive {
             self.estep(cx, pos);
             self.cursor = pos + 1;
         }
+    }
+
+    /// See [`Pool::recall`].
+    pub fn neighbour_recall(&self, contexts: &[Vec<f64>], at: u64) -> (bool, f64) {
+        self.pool.recall(contexts, at)
     }
 
     /// Pool entries: (labelled, unlabelled).

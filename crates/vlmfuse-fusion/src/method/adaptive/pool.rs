@@ -12,6 +12,7 @@
 //! decay that is the paper method's order exactly (cosine, then older first); with it, a recent round that is
 //! a little less similar beats an old one, so decay does not empty the neighbourhood of weight.
 
+use super::ann::Ivf;
 use crate::bank::Bank;
 use std::collections::HashMap;
 
@@ -35,6 +36,9 @@ pub struct Scan {
     pub top: Vec<Nb>,
     /// Entries that may take the round as a neighbour, with exact cosines, in pool order.
     pub rev: Vec<(usize, f64)>,
+    /// The approximate index's cell of the round's context, when the scan went through it
+    /// (the cells never move, so the insertion need not compare it with the centres again).
+    pub cell: Option<u32>,
 }
 
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
@@ -65,6 +69,14 @@ pub struct Pool {
     worst_sim: Vec<f64>,
     /// Evictions so far ([`Pool::evict`]); a scan is valid only in its own epoch.
     epoch: u64,
+    /// The approximate index ([`super::ann`]), built when the pool first holds `ann_min`
+    /// entries (0: never) with `ann_cells` cells; a query probes `ann_probe` cells and scores
+    /// `ann_ef` candidates exactly.
+    ann: Option<Ivf>,
+    ann_min: usize,
+    ann_cells: usize,
+    ann_probe: usize,
+    ann_ef: usize,
 }
 
 /// `max(0, s)^tau`.
@@ -100,6 +112,102 @@ impl Pool {
             unlabelled: Vec::new(),
             worst_sim: Vec::new(),
             epoch: 0,
+            ann: None,
+            ann_min: 0,
+            ann_cells: 0,
+            ann_probe: 0,
+            ann_ef: 0,
+        }
+    }
+
+    /// Uses the approximate index once the pool holds `min` entries (0: never): `cells` cells,
+    /// `probe` of them searched per query, `ef` candidates scored exactly. Call it on an empty
+    /// pool.
+    pub fn approximate(mut self, min: usize, cells: usize, probe: usize, ef: usize) -> Self {
+        debug_assert_eq!(self.len(), 0);
+        self.ann_min = min;
+        self.ann_cells = cells;
+        self.ann_probe = probe;
+        self.ann_ef = ef;
+        self
+    }
+
+    /// Whether scans use the approximate index, and the share of the exact scan's neighbours
+    /// its scans find for these queries (clock `at`).
+    pub fn recall(&self, queries: &[Vec<f64>], at: u64) -> (bool, f64) {
+        let (mut hit, mut total) = (0usize, 0usize);
+        for x in queries {
+            let got: Vec<u32> = self.scan(x, at).top.iter().map(|n| n.pos).collect();
+            let want = self.scan_exact(x, at).top;
+            hit += want.iter().filter(|n| got.contains(&n.pos)).count();
+            total += want.len();
+        }
+        (self.ann_active(), hit as f64 / total.max(1) as f64)
+    }
+
+    /// Whether scans use the approximate index.
+    pub fn ann_active(&self) -> bool {
+        self.ann.is_some()
+    }
+
+    /// After an insertion: the entry joins its cell, or, when the pool first reaches
+    /// `ann_min`, the cells are fixed over the whole pool.
+    fn ann_after_insert(&mut self, pos: usize, cell: Option<u32>) {
+        if let Some(ivf) = self.ann.as_mut() {
+            ivf.push(self.bank.f32_row(pos), cell);
+            debug_assert_eq!(ivf.len(), self.bank.len());
+        } else if self.ann_min > 0 && self.len() >= self.ann_min {
+            self.ann = Some(Ivf::train(
+                self.bank.f32_rows(),
+                self.bank.dim(),
+                self.ann_cells,
+            ));
+        }
+    }
+
+    /// [`Pool::scan`] through the approximate index: its `ann_ef` candidates are scored exactly
+    /// and ranked as the exact scan ranks; the entries whose list the round may enter are
+    /// looked for among them.
+    fn ann_scan(&self, ivf: &Ivf, x: &[f64], at: u64) -> Scan {
+        let len = self.len();
+        let m = self.kmax.min(len);
+        let xf: Vec<f32> = x.iter().map(|&v| v as f32).collect();
+        let (mut cand, cell) = ivf.candidates(&xf, self.ann_probe, self.ann_ef.max(self.kmax));
+        cand.sort_unstable();
+        #[cfg(target_arch = "x86_64")]
+        for &j in &cand {
+            let row = self.bank.f32_row(j).as_ptr() as *const i8;
+            // SAFETY: a prefetch is a hint; the pointer is the start of a live slice.
+            unsafe { std::arch::x86_64::_mm_prefetch(row, std::arch::x86_64::_MM_HINT_T0) };
+        }
+        let mut top = Vec::with_capacity(cand.len());
+        let mut rev = Vec::new();
+        // Without decay, entering a list is a cosine test against its flat copy of the worst
+        // kept cosine (as in the exact scan): no pointer chase, no `powf`, per candidate.
+        let by_sim = self.half_life <= 0.0 && self.worst_sim.len() == len;
+        for j in cand {
+            let sim = self.bank.sim(x, j);
+            top.push(Nb {
+                pos: j as u32,
+                sim,
+                key: self.key(sim, self.clock[j], at),
+            });
+            let enters = if by_sim {
+                sim >= self.worst_sim[j]
+            } else {
+                self.may_enter(j, sim, at)
+            };
+            if enters {
+                rev.push((j, sim));
+            }
+        }
+        self.rank(&mut top, m);
+        Scan {
+            pool_len: len,
+            epoch: self.epoch,
+            top,
+            rev,
+            cell: Some(cell),
         }
     }
 
@@ -132,6 +240,9 @@ impl Pool {
         }
         let keep: Vec<bool> = dead.iter().map(|d| !d).collect();
         self.bank.retain(&keep);
+        if let Some(ivf) = self.ann.as_mut() {
+            ivf.retain(&keep);
+        }
         let l = self.l;
         let mut w = 0;
         for (r, &gone) in dead.iter().enumerate() {
@@ -181,6 +292,28 @@ impl Pool {
 
     pub fn position(&self, seq: u64) -> Option<usize> {
         self.by_seq.get(&seq).copied()
+    }
+
+    /// Asks the processor to start loading what [`Adaptive`](super::Adaptive)'s weighted sums
+    /// read of these entries (soft truths, reports), so that the misses of a large pool overlap
+    /// instead of coming one neighbour at a time. A hint only: no effect on any result.
+    #[inline]
+    pub fn prefetch(&self, positions: impl Iterator<Item = usize>) {
+        #[cfg(target_arch = "x86_64")]
+        for pos in positions {
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+            let t = self.soft[pos * self.l..].as_ptr() as *const i8;
+            let r = self.bank.reports_of(pos).as_ptr() as *const i8;
+            // SAFETY: a prefetch is a hint; both pointers are in bounds of live slices.
+            unsafe {
+                _mm_prefetch(t, _MM_HINT_T0);
+                _mm_prefetch(t.wrapping_add(64), _MM_HINT_T0);
+                _mm_prefetch(t.wrapping_add(self.l * 8 - 1), _MM_HINT_T0);
+                _mm_prefetch(r, _MM_HINT_T0);
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = positions;
     }
 
     pub fn soft(&self, pos: usize) -> &[f64] {
@@ -365,6 +498,7 @@ impl Pool {
             epoch: self.epoch,
             top,
             rev,
+            cell: None,
         }
     }
 
@@ -373,6 +507,14 @@ impl Pool {
     /// bank's f32 first pass with its rigorous bound: only entries whose weight could reach the
     /// cut are scored exactly.
     pub fn scan(&self, x: &[f64], at: u64) -> Scan {
+        match &self.ann {
+            Some(ivf) => self.ann_scan(ivf, x, at),
+            None => self.scan_exact(x, at),
+        }
+    }
+
+    /// [`Pool::scan`] over every entry, whether or not the approximate index is in use.
+    pub fn scan_exact(&self, x: &[f64], at: u64) -> Scan {
         let len = self.len();
         let m = self.kmax.min(len);
         let mut top: Vec<Nb> = Vec::new();
@@ -465,6 +607,7 @@ impl Pool {
             epoch: self.epoch,
             top,
             rev,
+            cell: None,
         }
     }
 
@@ -488,6 +631,7 @@ impl Pool {
             epoch: self.epoch,
             top,
             rev,
+            cell: scan.cell,
         }
     }
 
@@ -546,6 +690,7 @@ impl Pool {
                 self.worst_sim[j] = self.worst_of(j);
             }
         }
+        self.ann_after_insert(pos, scan.cell);
         pos
     }
 }
@@ -650,6 +795,59 @@ mod tests {
         }
     }
 
+    /// Contexts around a few centres, as scenes are.
+    fn clustered(state: &mut u64, centres: &[Vec<f64>], spread: f64) -> Vec<f64> {
+        let c = &centres[((rnd(state) + 0.5) * centres.len() as f64) as usize % centres.len()];
+        unit(&c.iter().map(|v| v + spread * rnd(state)).collect::<Vec<_>>())
+    }
+
+    #[test]
+    fn the_approximate_index_recalls_the_exact_neighbours() {
+        let (dim, count) = (48, 6000);
+        let mut state = 23u64;
+        let centres: Vec<Vec<f64>> = (0..40)
+            .map(|_| (0..dim).map(|_| rnd(&mut state)).collect())
+            .collect();
+        let mut pool = Pool::new(1, 1, 20, 4.0, 0.0)
+            .compact(true)
+            .approximate(2000, 64, 8, 100);
+        for s in 0..count as u64 {
+            let x = clustered(&mut state, &centres, 0.5);
+            assert_eq!(pool.ann_active(), s >= 2000, "round {s}");
+            let scan = pool.scan(&x, s / 10);
+            pool.insert(s, &x, &[true], &[0], &[0.0], false, s / 10, &scan);
+        }
+        // Query, then evict a third (the index renumbers with the pool) and query again.
+        let mut reverse = (0, 0);
+        for round in 0..2 {
+            let (mut hit, mut total) = (0, 0);
+            for _ in 0..200 {
+                let x = clustered(&mut state, &centres, 0.5);
+                let approx = pool.scan(&x, 600);
+                let exact = pool.scan_exact(&x, 600);
+                let got: Vec<u32> = approx.top.iter().map(|n| n.pos).collect();
+                hit += exact.top.iter().filter(|n| got.contains(&n.pos)).count();
+                total += exact.top.len();
+                if round == 0 {
+                    let rev: Vec<usize> = approx.rev.iter().map(|r| r.0).collect();
+                    reverse.0 += exact.rev.iter().filter(|r| rev.contains(&r.0)).count();
+                    reverse.1 += exact.rev.len();
+                }
+                // Candidates are scored exactly: every cosine found is the exact one.
+                for n in &approx.top {
+                    assert_eq!(n.sim, pool.bank.sim(&x, n.pos as usize));
+                }
+            }
+            let recall = hit as f64 / total as f64;
+            assert!(recall >= 0.95, "recall@20 {recall:.3} (after eviction: {round})");
+            let dead: Vec<bool> = (0..pool.len()).map(|p| p % 3 == 1).collect();
+            pool.evict(&dead);
+        }
+        let rev_recall = reverse.0 as f64 / reverse.1 as f64;
+        assert!(reverse.1 > 200, "{reverse:?}");
+        assert!(rev_recall >= 0.9, "reverse-neighbour recall {rev_recall:.3}");
+    }
+
     #[test]
     fn given_cosines_scan_as_the_pool_does() {
         check_given_cosines(300, 0.0);
@@ -667,5 +865,142 @@ mod tests {
     fn neighbour_lists_with_decay_and_the_f32_first_pass() {
         check(2600, 8, 0.0, false);
         check(2600, 8, 40.0, false);
+    }
+}
+
+#[cfg(test)]
+mod sweep {
+    use super::*;
+
+    /// Recall and cost of the approximate index on the bench's generated rounds (not a test:
+    /// `cargo test --release -p vlmfuse-fusion --lib -- --ignored ann_sweep --nocapture`).
+    #[test]
+    #[ignore]
+    fn ann_sweep() {
+        let n: usize = std::env::var("SWEEP_N").map_or(100_000, |v| v.parse().unwrap());
+        let cells: usize = std::env::var("SWEEP_CELLS").map_or(512, |v| v.parse().unwrap());
+        let mut synth = if std::env::var("SWEEP_ISO").is_ok() {
+            crate::bench::Synth::new(7, 512, 3, 14)
+        } else {
+            crate::bench::Synth::scenes(7, 512, 3, 14)
+        };
+        let t = std::time::Instant::now();
+        let mut pool = Pool::new(3, 14, 50, 4.0, 0.0)
+            .compact(true)
+            .approximate(n, cells, 24, 200);
+        let zero = vec![0u8; 42];
+        for s in 0..n as u64 {
+            let x = synth.round().round.context;
+            let scan = Scan {
+                pool_len: pool.len(),
+                epoch: pool.epoch(),
+                ..Scan::default()
+            };
+            pool.insert(s, &x, &[true; 3], &zero, &[0.0; 14], false, 0, &scan);
+        }
+        eprintln!("built {n} in {:.1} s", t.elapsed().as_secs_f64());
+        let sizes = pool.ann.as_ref().unwrap().cell_sizes();
+        eprintln!("cell sizes: largest {:?}, median {}, empty {}", &sizes[..10], sizes[sizes.len() / 2], sizes.iter().filter(|&&s| s == 0).count());
+        let queries: Vec<Vec<f64>> = (0..100).map(|_| synth.round().round.context).collect();
+        let exact: Vec<Vec<u32>> = queries
+            .iter()
+            .map(|x| {
+                if std::env::var("SWEEP_NOEXACT").is_ok() {
+                    return Vec::new();
+                }
+                pool.scan_exact(x, 0).top.iter().map(|n| n.pos).collect()
+            })
+            .collect();
+        for probe in [8, 16, 24, 48] {
+            for ef in [200] {
+                pool.ann_probe = probe;
+                pool.ann_ef = ef;
+                let t = std::time::Instant::now();
+                let ivf = pool.ann.as_ref().unwrap();
+                let reps: usize = std::env::var("SWEEP_REPS").map_or(1, |v| v.parse().unwrap());
+                for _ in 0..reps {
+                    for x in &queries {
+                        let xf: Vec<f32> = x.iter().map(|&v| v as f32).collect();
+                        std::hint::black_box(ivf.candidates(&xf, probe, ef));
+                    }
+                }
+                eprintln!("  candidates alone {:.0} us", t.elapsed().as_secs_f64() / (reps * queries.len()) as f64 * 1e6);
+                let t = std::time::Instant::now();
+                let mut hit = 0;
+                for (x, want) in queries.iter().zip(&exact) {
+                    let got: Vec<u32> = pool.scan(x, 0).top.iter().map(|n| n.pos).collect();
+                    hit += want.iter().filter(|p| got.contains(p)).count();
+                }
+                eprintln!(
+                    "cells {cells} probe {probe} ef {ef}: recall@50 {:.3}, {:.0} us/query",
+                    hit as f64 / (50 * queries.len()) as f64,
+                    t.elapsed().as_secs_f64() / queries.len() as f64 * 1e6
+                );
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod engine_sweep {
+    use crate::bench::{reporter_names, Synth};
+    use crate::{Engine, FusionConfig, LabelledRound, Method, Ontology};
+    use std::time::{Duration, Instant};
+
+    /// Per-phase cost of the default engine at a large pool (not a test: `cargo test --release
+    /// -p vlmfuse-fusion --lib -- --ignored engine_sweep --nocapture`).
+    #[test]
+    #[ignore]
+    fn engine_sweep() {
+        let build: u64 = std::env::var("SWEEP_BUILD").map_or(40_000, |v| v.parse().unwrap());
+        let measure: u64 = std::env::var("SWEEP_MEASURE").map_or(5_000, |v| v.parse().unwrap());
+        let ont = Ontology::paper();
+        let cfg = FusionConfig {
+            method: Method::Adaptive,
+            ..FusionConfig::default()
+        };
+        let mut e = Engine::new(cfg, ont.clone(), reporter_names(3)).unwrap();
+        let mut synth = Synth::scenes(7, 512, 3, ont.len());
+        let mut t = [Duration::ZERO; 4];
+        let t0 = Instant::now();
+        for seq in 0..build + measure {
+            if seq == build {
+                eprintln!("built {build} in {:.1} s", t0.elapsed().as_secs_f64());
+                t = [Duration::ZERO; 4];
+            }
+            let s = synth.round();
+            let a = Instant::now();
+            let inf = e.infer(&s.round);
+            let b = Instant::now();
+            e.observe(seq, &s.round, &inf).unwrap();
+            let c = Instant::now();
+            t[0] += b - a;
+            t[1] += c - b;
+            if seq % 10 == 0 {
+                let o = e.credit(&inf.signals, &inf.w_used, &s.truth, seq);
+                let d = Instant::now();
+                e.apply(
+                    &LabelledRound {
+                        seq,
+                        round: s.round,
+                        truth: s.truth,
+                        q: inf.q,
+                    },
+                    Some(&o),
+                )
+                .unwrap();
+                t[2] += d - c;
+                t[3] += d.elapsed();
+            }
+        }
+        let us = |d: Duration| d.as_secs_f64() / measure as f64 * 1e6;
+        eprintln!(
+            "per round at pool {}: infer {:.0} us, observe {:.0} us, credit {:.0} us, apply {:.0} us (per round, 1 in 10 labelled)",
+            build,
+            us(t[0]),
+            us(t[1]),
+            us(t[2]),
+            us(t[3])
+        );
     }
 }
