@@ -262,6 +262,11 @@ impl Engine {
         self.method.pool_sizes()
     }
 
+    /// Whether `adaptive`'s scans go through its approximate index (false under `paper`).
+    pub fn approximate_knn(&self) -> bool {
+        self.method.approximate_knn()
+    }
+
     /// `adaptive`'s approximate index: whether it is in use, and the share of the exact
     /// neighbours (by cosine, `max(k, k_prior)` per query) that its scans find for these
     /// unit-norm contexts (1 when the scans are exact). `None` under `paper`.

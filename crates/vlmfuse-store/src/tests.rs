@@ -682,7 +682,11 @@ fn an_approximate_index_snapshot_plus_its_tail_is_the_full_replay_bit_for_bit() 
             bytes(&full),
             "ann_min {ann_min}: snapshot + tail != full replay"
         );
-        assert_eq!(bytes(&snap), bytes(&live), "ann_min {ann_min}: != the engine that lived it");
+        assert_eq!(
+            bytes(&snap),
+            bytes(&live),
+            "ann_min {ann_min}: != the engine that lived it"
+        );
         let probe = live.parse(&record(999)).unwrap().0;
         assert_eq!(snap.infer(&probe), full.infer(&probe));
         assert_eq!(snap.infer(&probe), live.infer(&probe));

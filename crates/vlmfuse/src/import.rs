@@ -278,7 +278,8 @@ fn ingest(
     // much as the engine's work on it.
     let lines = lines(file)?;
     std::thread::scope(|scope| -> anyhow::Result<Imported> {
-        let (tx, rx) = std::sync::mpsc::sync_channel::<(usize, u64, anyhow::Result<RoundRecord>)>(256);
+        let (tx, rx) =
+            std::sync::mpsc::sync_channel::<(usize, u64, anyhow::Result<RoundRecord>)>(256);
         let reader_name = name.clone();
         scope.spawn(move || {
             for (line, read, text) in lines {

@@ -190,6 +190,9 @@ pub struct PoolOut {
     pub unlabelled: usize,
     /// The cap on unlabelled entries (0: none).
     pub max_unlabelled: usize,
+    /// Whether neighbours are found through the approximate index (`[fusion.adaptive]
+    /// ann_min` reached) rather than by the exact scan.
+    pub approximate_knn: bool,
 }
 
 /// `GET /v1/ontology`.
@@ -273,6 +276,7 @@ pub fn state_out(eng: &Engine, rounds: u64) -> StateOut {
             labelled,
             unlabelled,
             max_unlabelled: eng.config().adaptive.pool_max,
+            approximate_knn: eng.approximate_knn(),
         }),
         rounds,
         dim: eng.dim(),

@@ -85,6 +85,13 @@ impl MethodState {
         }
     }
 
+    pub fn approximate_knn(&self) -> bool {
+        match self {
+            MethodState::Paper(_) => false,
+            MethodState::Adaptive(a) => a.approximate_knn(),
+        }
+    }
+
     pub fn neighbour_recall(&self, contexts: &[Vec<f64>], at: u64) -> Option<(bool, f64)> {
         match self {
             MethodState::Paper(_) => None,

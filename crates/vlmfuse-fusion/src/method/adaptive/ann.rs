@@ -266,7 +266,12 @@ impl Ivf {
         let mut scored: Vec<(f32, usize)> = Vec::new();
         for &c in &order {
             let cell = &self.lists[c];
-            for ((&p, &s), code) in cell.pos.iter().zip(&cell.scales).zip(cell.codes.chunks_exact(d)) {
+            for ((&p, &s), code) in cell
+                .pos
+                .iter()
+                .zip(&cell.scales)
+                .zip(cell.codes.chunks_exact(d))
+            {
                 scored.push((dot_i8(&q, code) as f32 * qs * s, p as usize));
             }
         }
@@ -285,13 +290,20 @@ mod tests {
 
     #[test]
     fn codes_keep_the_cosine_and_dot_products_are_exact() {
-        let x: Vec<f32> = (0..100).map(|i| ((i * 37 % 23) as f32 - 11.0) / 40.0).collect();
-        let y: Vec<f32> = (0..100).map(|i| ((i * 11 % 19) as f32 - 9.0) / 30.0).collect();
+        let x: Vec<f32> = (0..100)
+            .map(|i| ((i * 37 % 23) as f32 - 11.0) / 40.0)
+            .collect();
+        let y: Vec<f32> = (0..100)
+            .map(|i| ((i * 11 % 19) as f32 - 9.0) / 30.0)
+            .collect();
         let (mut cx, mut cy) = (Vec::new(), Vec::new());
         let (sx, sy) = (quantise(&x, &mut cx), quantise(&y, &mut cy));
         let exact: f32 = x.iter().zip(&y).map(|(a, b)| a * b).sum();
         let approx = dot_i8(&cx, &cy) as f32 * sx * sy;
-        assert!((exact - approx).abs() < 0.02 * exact.abs().max(1.0), "{exact} {approx}");
+        assert!(
+            (exact - approx).abs() < 0.02 * exact.abs().max(1.0),
+            "{exact} {approx}"
+        );
         let naive: i32 = cx.iter().zip(&cy).map(|(a, b)| *a as i32 * *b as i32).sum();
         assert_eq!(dot_i8(&cx, &cy), naive);
         assert_eq!(dot_i8_body(&cx, &cy), naive);

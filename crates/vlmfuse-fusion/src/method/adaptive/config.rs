@@ -362,7 +362,9 @@ impl AdaptiveConfig {
             return Err("threshold_initial must lie in [0, 1]".into());
         }
         if self.ann_min > 0 && (self.ann_cells == 0 || self.ann_probe == 0 || self.ann_ef == 0) {
-            return Err("with ann_min > 0, ann_cells, ann_probe and ann_ef must be at least 1".into());
+            return Err(
+                "with ann_min > 0, ann_cells, ann_probe and ann_ef must be at least 1".into(),
+            );
         }
         Ok(())
     }

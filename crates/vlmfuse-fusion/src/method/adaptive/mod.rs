@@ -17,8 +17,8 @@
 //! pool (as the paper method's inference is over the bank), the E-step of at most `refresh_max + em_chunk`
 //! entries.
 
-pub mod calibrate;
 pub mod ann;
+pub mod calibrate;
 pub mod config;
 pub mod pool;
 
@@ -726,6 +726,10 @@ impl Adaptive {
             self.estep(cx, pos);
             self.cursor = pos + 1;
         }
+    }
+
+    pub fn approximate_knn(&self) -> bool {
+        self.pool.ann_active()
     }
 
     /// See [`Pool::recall`].

@@ -798,7 +798,11 @@ mod tests {
     /// Contexts around a few centres, as scenes are.
     fn clustered(state: &mut u64, centres: &[Vec<f64>], spread: f64) -> Vec<f64> {
         let c = &centres[((rnd(state) + 0.5) * centres.len() as f64) as usize % centres.len()];
-        unit(&c.iter().map(|v| v + spread * rnd(state)).collect::<Vec<_>>())
+        unit(
+            &c.iter()
+                .map(|v| v + spread * rnd(state))
+                .collect::<Vec<_>>(),
+        )
     }
 
     #[test]
@@ -839,13 +843,19 @@ mod tests {
                 }
             }
             let recall = hit as f64 / total as f64;
-            assert!(recall >= 0.95, "recall@20 {recall:.3} (after eviction: {round})");
+            assert!(
+                recall >= 0.95,
+                "recall@20 {recall:.3} (after eviction: {round})"
+            );
             let dead: Vec<bool> = (0..pool.len()).map(|p| p % 3 == 1).collect();
             pool.evict(&dead);
         }
         let rev_recall = reverse.0 as f64 / reverse.1 as f64;
         assert!(reverse.1 > 200, "{reverse:?}");
-        assert!(rev_recall >= 0.9, "reverse-neighbour recall {rev_recall:.3}");
+        assert!(
+            rev_recall >= 0.9,
+            "reverse-neighbour recall {rev_recall:.3}"
+        );
     }
 
     #[test]
@@ -900,7 +910,12 @@ mod sweep {
         }
         eprintln!("built {n} in {:.1} s", t.elapsed().as_secs_f64());
         let sizes = pool.ann.as_ref().unwrap().cell_sizes();
-        eprintln!("cell sizes: largest {:?}, median {}, empty {}", &sizes[..10], sizes[sizes.len() / 2], sizes.iter().filter(|&&s| s == 0).count());
+        eprintln!(
+            "cell sizes: largest {:?}, median {}, empty {}",
+            &sizes[..10],
+            sizes[sizes.len() / 2],
+            sizes.iter().filter(|&&s| s == 0).count()
+        );
         let queries: Vec<Vec<f64>> = (0..100).map(|_| synth.round().round.context).collect();
         let exact: Vec<Vec<u32>> = queries
             .iter()
@@ -924,7 +939,10 @@ mod sweep {
                         std::hint::black_box(ivf.candidates(&xf, probe, ef));
                     }
                 }
-                eprintln!("  candidates alone {:.0} us", t.elapsed().as_secs_f64() / (reps * queries.len()) as f64 * 1e6);
+                eprintln!(
+                    "  candidates alone {:.0} us",
+                    t.elapsed().as_secs_f64() / (reps * queries.len()) as f64 * 1e6
+                );
                 let t = std::time::Instant::now();
                 let mut hit = 0;
                 for (x, want) in queries.iter().zip(&exact) {
