@@ -294,61 +294,88 @@ fn ingest(
                 }
             }
         });
-        for (line, read, rec) in rx {
-            if stop.load(Ordering::Relaxed) {
-                bail!("interrupted at line {line}");
-            }
-            let rec = rec?;
-            if engine.dim().is_none() {
-                engine.fix_dim(rec.context.len())?;
-            }
-            let (round, truth) = engine
-                .parse(&rec)
-                .with_context(|| format!("{name}: line {line} (changed since it was checked?)"))?;
-            let inf = engine.infer(&round);
-            engine.observe(seq, &round, &inf)?;
-            if let Some(truth) = truth {
-                let outcome = engine.credit(&inf.signals, &inf.w_used, &truth, seq);
-                fbs.push(StoredFeedback {
-                    seq,
-                    labelled_order: engine.labelled(),
-                    rounds_before: seq + 1,
-                    truth: truth.clone(),
-                    outcome: outcome.clone(),
-                });
-                engine.apply(
-                    &LabelledRound {
-                        seq,
-                        round: round.clone(),
-                        truth,
-                        q: inf.q.clone(),
-                    },
-                    Some(&outcome),
-                )?;
-                done.labelled += 1;
-            }
-            let mut stored = inf;
-            stored.scan = None;
-            rounds.push(NewRound {
-                round,
-                inference: stored,
-                request: serde_json::json!({
-                    "import": { "file": name, "line": line, "id": rec.id },
-                    "reports": rec.reports,
-                }),
-                created_ms: vlmfuse_store::timestamp_ms(),
-            });
-            seq += 1;
-            done.rounds += 1;
-            if rounds.len() >= chunk {
+        // Chunks are committed on a third thread, while the engine goes on with the next.
+        let (wtx, wrx) =
+            std::sync::mpsc::sync_channel::<(u64, Vec<NewRound>, Vec<StoredFeedback>)>(1);
+        let writer = scope.spawn(move || -> anyhow::Result<()> {
+            for (first, rounds, fbs) in wrx {
                 store.insert_batch(first, &rounds, &fbs)?;
-                rounds.clear();
-                fbs.clear();
-                first = seq;
-                b.set_position(read);
             }
-        }
-        store.insert_batch(first, &rounds, &fbs)?;
+            Ok(())
+        });
+        let commit = |first: u64, rounds: Vec<NewRound>, fbs: Vec<StoredFeedback>| {
+            // A closed queue means the writer failed: its error is the one to report.
+            wtx.send((first, rounds, fbs)).is_ok()
+        };
+        let engine_side = (|| -> anyhow::Result<bool> {
+            for (line, read, rec) in rx {
+                if stop.load(Ordering::Relaxed) {
+                    bail!("interrupted at line {line}");
+                }
+                let rec = rec?;
+                if engine.dim().is_none() {
+                    engine.fix_dim(rec.context.len())?;
+                }
+                let (round, truth) = engine.parse(&rec).with_context(|| {
+                    format!("{name}: line {line} (changed since it was checked?)")
+                })?;
+                let inf = engine.infer(&round);
+                engine.observe(seq, &round, &inf)?;
+                if let Some(truth) = truth {
+                    let outcome = engine.credit(&inf.signals, &inf.w_used, &truth, seq);
+                    fbs.push(StoredFeedback {
+                        seq,
+                        labelled_order: engine.labelled(),
+                        rounds_before: seq + 1,
+                        truth: truth.clone(),
+                        outcome: outcome.clone(),
+                    });
+                    engine.apply(
+                        &LabelledRound {
+                            seq,
+                            round: round.clone(),
+                            truth,
+                            q: inf.q.clone(),
+                        },
+                        Some(&outcome),
+                    )?;
+                    done.labelled += 1;
+                }
+                let mut stored = inf;
+                stored.scan = None;
+                rounds.push(NewRound {
+                    round,
+                    inference: stored,
+                    request: serde_json::json!({
+                        "import": { "file": name, "line": line, "id": rec.id },
+                        "reports": rec.reports,
+                    }),
+                    created_ms: vlmfuse_store::timestamp_ms(),
+                });
+                seq += 1;
+                done.rounds += 1;
+                if rounds.len() >= chunk {
+                    let full = std::mem::replace(&mut rounds, Vec::with_capacity(chunk));
+                    if !commit(first, full, std::mem::take(&mut fbs)) {
+                        return Ok(false);
+                    }
+                    first = seq;
+                    b.set_position(read);
+                }
+            }
+            Ok(commit(
+                first,
+                std::mem::take(&mut rounds),
+                std::mem::take(&mut fbs),
+            ))
+        })();
+        drop(wtx);
+        let written = writer
+            .join()
+            .map_err(|_| anyhow::anyhow!("the import's writer thread panicked"))?;
+        // The writer's error first: a refused commit is why the engine side stopped.
+        written?;
+        engine_side?;
         b.finish_and_clear();
         Ok(done)
     })
