@@ -182,14 +182,6 @@ impl Ivf {
         self.len == 0
     }
 
-    /// Entries per cell, largest first.
-    #[cfg(test)]
-    pub fn cell_sizes(&self) -> Vec<usize> {
-        let mut v: Vec<usize> = self.lists.iter().map(|c| c.pos.len()).collect();
-        v.sort_unstable_by(|a, b| b.cmp(a));
-        v
-    }
-
     pub fn cells(&self) -> usize {
         self.lists.len()
     }
