@@ -187,11 +187,7 @@ impl Pool {
         let by_sim = self.half_life <= 0.0 && self.worst_sim.len() == len;
         for j in cand {
             let sim = self.bank.sim(x, j);
-            top.push(Nb {
-                pos: j as u32,
-                sim,
-                key: self.key(sim, self.clock[j], at),
-            });
+            top.push(self.nb_at(j, sim, at));
             let enters = if by_sim {
                 sim >= self.worst_sim[j]
             } else {
@@ -382,6 +378,16 @@ impl Pool {
         }
     }
 
+    /// Entry `j` as a neighbour, with cosine `sim`, of a round observed at clock `at`.
+    #[inline]
+    fn nb_at(&self, j: usize, sim: f64, at: u64) -> Nb {
+        Nb {
+            pos: j as u32,
+            sim,
+            key: self.key(sim, self.clock[j], at),
+        }
+    }
+
     /// `a` ranks before `b`: higher weight, then higher cosine, then the older round.
     #[inline]
     fn before(&self, a: &Nb, b: &Nb) -> bool {
@@ -471,22 +477,14 @@ impl Pool {
                 }
                 top = best
                     .into_iter()
-                    .map(|(j, s)| Nb {
-                        pos: j as u32,
-                        sim: s,
-                        key: self.key(s, self.clock[j], at),
-                    })
+                    .map(|(j, s)| self.nb_at(j, s, at))
                     .collect();
                 self.rank(&mut top, m);
             }
         } else {
             for j in 0..len {
                 let s = sim(j);
-                top.push(Nb {
-                    pos: j as u32,
-                    sim: s,
-                    key: self.key(s, self.clock[j], at),
-                });
+                top.push(self.nb_at(j, s, at));
                 if self.may_enter(j, s, at) {
                     rev.push((j, s));
                 }
@@ -543,11 +541,7 @@ impl Pool {
                     for j in 0..len {
                         if approx[j] as f64 + bound[j] >= cut {
                             let sim = self.bank.sim(x, j);
-                            top.push(Nb {
-                                pos: j as u32,
-                                sim,
-                                key: self.key(sim, self.clock[j], at),
-                            });
+                            top.push(self.nb_at(j, sim, at));
                         }
                     }
                     self.rank(&mut top, m);
@@ -556,11 +550,7 @@ impl Pool {
             None => {
                 for j in 0..len {
                     let sim = self.bank.sim(x, j);
-                    top.push(Nb {
-                        pos: j as u32,
-                        sim,
-                        key: self.key(sim, self.clock[j], at),
-                    });
+                    top.push(self.nb_at(j, sim, at));
                     if newcomer_beats(j, sim) {
                         rev.push((j, sim));
                     }
@@ -591,11 +581,7 @@ impl Pool {
                         let up = self.key(approx[j] as f64 + bound[j], self.clock[j], at);
                         if up >= cut {
                             let sim = self.bank.sim(x, j);
-                            top.push(Nb {
-                                pos: j as u32,
-                                sim,
-                                key: self.key(sim, self.clock[j], at),
-                            });
+                            top.push(self.nb_at(j, sim, at));
                         }
                     }
                     self.rank(&mut top, m);
@@ -618,11 +604,7 @@ impl Pool {
         let mut rev = scan.rev.clone();
         for j in scan.pool_len..len {
             let sim = self.bank.sim(x, j);
-            top.push(Nb {
-                pos: j as u32,
-                sim,
-                key: self.key(sim, self.clock[j], at),
-            });
+            top.push(self.nb_at(j, sim, at));
             rev.push((j, sim));
         }
         self.rank(&mut top, self.kmax);
