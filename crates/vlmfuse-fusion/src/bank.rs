@@ -27,6 +27,9 @@ pub struct Bank {
     global: Vec<[u64; 4]>,
     /// Whole-bank positives per label.
     global_y: Vec<u64>,
+    /// Whole-bank entries whose truth is known, per label (partial feedback leaves some
+    /// unknown; with every label known it is the bank's length).
+    global_known: Vec<u64>,
     /// f32 copy of every context for a fast first pass over the bank (half the memory traffic
     /// of the f64 scan), with the exact norm of each entry's rounding error, which bounds how far
     /// the fast similarity can be from the exact one (Cauchy-Schwarz). See [`Bank::top_exact`].
@@ -168,6 +171,7 @@ impl Bank {
             l,
             global: vec![[0; 4]; n * l],
             global_y: vec![0; l],
+            global_known: vec![0; l],
             ..Default::default()
         }
     }
@@ -253,6 +257,53 @@ impl Bank {
         self.global_y[k]
     }
 
+    /// Entries whose truth for label `k` is known.
+    pub fn global_known(&self, k: usize) -> u64 {
+        self.global_known[k]
+    }
+
+    /// Adds (`sign = 1`) or removes (`-1`) entry `pos`'s known truths from the whole-bank
+    /// counts.
+    fn count(&mut self, pos: usize, sign: i64) {
+        let (n, l) = (self.n, self.l);
+        let add = |c: &mut u64| *c = c.wrapping_add_signed(sign);
+        for k in 0..l {
+            let y = self.truths[pos * l + k];
+            if y > 1 {
+                continue;
+            }
+            for i in 0..n {
+                if self.present[pos * n + i] != 0 {
+                    let r = self.reports[(pos * n + i) * l + k];
+                    add(&mut self.global[i * l + k][cell(r, y)]);
+                }
+            }
+            if y == 1 {
+                add(&mut self.global_y[k]);
+            }
+            add(&mut self.global_known[k]);
+        }
+    }
+
+    /// The position of the entry for round `seq`, if the bank holds it (a linear search from
+    /// the newest: only a second feedback on a round needs it).
+    pub fn position(&self, seq: u64) -> Option<usize> {
+        self.seqs.iter().rposition(|&s| s == seq)
+    }
+
+    /// A later feedback on entry `pos`: every label `truth` knows (0 or 1) takes that value,
+    /// the others keep theirs. The whole-bank counts follow.
+    pub fn merge_truth(&mut self, pos: usize, truth: &[u8]) {
+        self.count(pos, -1);
+        let l = self.l;
+        for (k, &y) in truth.iter().enumerate() {
+            if y <= 1 {
+                self.truths[pos * l + k] = y;
+            }
+        }
+        self.count(pos, 1);
+    }
+
     /// Appends a labelled round. The context must already be unit-norm and of the bank's
     /// dimension; the engine checks both before it gets here.
     pub fn push(
@@ -281,15 +332,10 @@ impl Bank {
             for k in 0..self.l {
                 let r = if p { reports[i * self.l + k] } else { 0 };
                 self.reports.push(r);
-                if p {
-                    self.global[i * self.l + k][cell(r, truth[k])] += 1;
-                }
             }
         }
-        for (k, &y) in truth.iter().enumerate() {
-            self.truths.push(y);
-            self.global_y[k] += y as u64;
-        }
+        self.truths.extend_from_slice(truth);
+        self.count(self.len() - 1, 1);
     }
 
     /// Keeps the entries with `keep[pos]` true, in order (the bounded pool's eviction). The
@@ -327,19 +373,9 @@ impl Bank {
         self.truths.truncate(w * l);
         self.global = vec![[0; 4]; n * l];
         self.global_y = vec![0; l];
+        self.global_known = vec![0; l];
         for pos in 0..w {
-            for i in 0..n {
-                if !self.present(pos, i) {
-                    continue;
-                }
-                for k in 0..l {
-                    let c = cell(self.report(pos, i, k), self.truth(pos, k));
-                    self.global[i * l + k][c] += 1;
-                }
-            }
-            for k in 0..l {
-                self.global_y[k] += self.truth(pos, k) as u64;
-            }
+            self.count(pos, 1);
         }
     }
 

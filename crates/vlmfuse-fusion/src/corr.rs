@@ -47,6 +47,9 @@ pub fn smoothed_phi_f64(c: [f64; 4], rho_max: f64) -> f64 {
     (num / den).clamp(0.0, rho_max)
 }
 
+/// A window entry's code for a label whose truth the feedback did not give.
+const SKIP: u8 = u8::MAX;
+
 impl CorrWindow {
     pub fn new(n: usize, l: usize, window: usize) -> Self {
         let pairs = (0..n * n.saturating_sub(1) / 2)
@@ -95,21 +98,30 @@ impl CorrWindow {
                     continue;
                 }
                 let pw = &mut self.pairs[pair_index(self.n, i, j)];
+                // A label whose truth is unknown (partial feedback) is no evidence about the
+                // pair's errors: coded SKIP, it never enters the counts.
                 let codes: Vec<u8> = (0..l)
                     .map(|k| {
+                        if truth[k] > 1 {
+                            return SKIP;
+                        }
                         let ei = (reports[i * l + k] != truth[k]) as u8;
                         let ej = (reports[j * l + k] != truth[k]) as u8;
                         ei + 2 * ej
                     })
                     .collect();
                 for (k, &c) in codes.iter().enumerate() {
-                    pw.counts[k][c as usize] += 1;
+                    if c != SKIP {
+                        pw.counts[k][c as usize] += 1;
+                    }
                 }
                 pw.rounds.push_back(codes);
                 if pw.rounds.len() > self.window {
                     let old = pw.rounds.pop_front().expect("window is non-empty");
                     for (k, &c) in old.iter().enumerate() {
-                        pw.counts[k][c as usize] -= 1;
+                        if c != SKIP {
+                            pw.counts[k][c as usize] -= 1;
+                        }
                     }
                 }
             }

@@ -47,12 +47,20 @@ impl Round {
     }
 }
 
+/// The truth byte of a label that a (partial) feedback does not give: truth vectors hold 0, 1
+/// or `UNKNOWN` per label. Every method learns only from the labels that are 0 or 1; a round
+/// labelled in several feedbacks is learned from each one's labels as it comes.
+pub const UNKNOWN: u8 = 2;
+
 /// A labelled round as the methods learn from it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LabelledRound {
     /// Inference order of the round (ties in similarity go to the older one).
     pub seq: u64,
     pub round: Round,
+    /// Per label 0, 1 or [`UNKNOWN`]: what this feedback teaches. A second feedback on a round
+    /// carries only the labels it adds or overrides; the methods merge it into what the first
+    /// left (the round's bank or pool entry takes the new values).
     pub truth: Vec<u8>,
     /// The posteriors the round got at inference time (for the threshold fit).
     pub q: Vec<f64>,
@@ -145,7 +153,7 @@ pub struct ReporterStats {
 /// the methods' state). A stored copy written under another layout is not read back: the store
 /// then replays the events instead. Bump it with any change to a field of the engine or of the
 /// state it owns; the `layout_is_pinned` test fails until it is bumped and its digest updated.
-pub const ENGINE_LAYOUT: u32 = 4;
+pub const ENGINE_LAYOUT: u32 = 5;
 
 /// The engine: shared state plus the configured method's own. Serialisable so that the store
 /// can keep a snapshot and replay only the events after it; a snapshot read back is the very

@@ -23,7 +23,7 @@ pub mod threshold;
 pub use config::{Ablations, FusionConfig, Method, ThresholdMode};
 pub use engine::{
     Engine, FeedbackOutcome, Inference, LabelExplanation, LabelledRound, ReporterStats, Round,
-    RoundRecord, ENGINE_LAYOUT,
+    RoundRecord, ENGINE_LAYOUT, UNKNOWN,
 };
 pub use error::FusionError;
 pub use method::adaptive::{AdaptiveConfig, Guardrail, Reputation, Scan, SoftTruth, WeightNorm};

@@ -213,10 +213,14 @@ impl Signals {
         self.posterior(&self.llr(), &self.prior_logit(), &|_| true)
     }
 
+    /// The prior's score over the labels whose truth is known (`y_k` is 0 or 1; a label marked
+    /// [`crate::UNKNOWN`] is left out of every value, so partial feedback credits only what it
+    /// says).
     fn prior_score(&self, y: &[u8]) -> f64 {
         self.prior
             .iter()
             .zip(y)
+            .filter(|(_, &yk)| yk <= 1)
             .map(|(&p, &yk)| log_score(p, yk, self.eps))
             .sum()
     }
@@ -236,6 +240,7 @@ impl Signals {
         let s: f64 = q
             .iter()
             .zip(y)
+            .filter(|(_, &yk)| yk <= 1)
             .map(|(&p, &yk)| log_score(p, yk, self.eps))
             .sum();
         s - self.prior_score(y)
@@ -318,6 +323,9 @@ impl Signals {
                 inside[m] = true;
                 let mut score = 0.0;
                 for k in 0..l {
+                    if y[k] > 1 {
+                        continue;
+                    }
                     let mut z = lp[k];
                     for a in 0..p {
                         if inside[a] {

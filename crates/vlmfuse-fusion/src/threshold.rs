@@ -105,13 +105,18 @@ impl ThresholdFitter {
         // pred[g] = #{k: cut_k > g}; inter[g] = #{k: y_k = 1, cut_k > g}.
         let mut pred_hist = vec![0i64; g + 1];
         let mut inter_hist = vec![0i64; g + 1];
+        // Labels of unknown truth (partial feedback) are not part of the round's label set:
+        // neither predicted nor true, they leave its Jaccard index alone.
         for (k, &c) in cuts.iter().enumerate() {
+            if y[k] > 1 {
+                continue;
+            }
             pred_hist[c] += 1;
             if y[k] != 0 {
                 inter_hist[c] += 1;
             }
         }
-        let truth = y.iter().filter(|&&v| v != 0).count() as i64;
+        let truth = y.iter().filter(|&&v| v == 1).count() as i64;
         let mut out = vec![(0, 0); g];
         let (mut pred, mut inter) = (0i64, 0i64);
         for gi in (0..g).rev() {
@@ -138,6 +143,9 @@ impl ThresholdFitter {
         let g = self.grid.len();
         let cuts = self.cuts(q);
         for k in 0..self.l {
+            if y[k] > 1 {
+                continue;
+            }
             let row = &mut self.counts[k * g..(k + 1) * g];
             for (gi, c) in row.iter_mut().enumerate() {
                 let pred = gi < cuts[k];

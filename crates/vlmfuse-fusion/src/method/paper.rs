@@ -69,7 +69,9 @@ impl Paper {
         if !bank.is_empty() {
             // Sums a+, b+, a-, b- per member and label, and kernel mass and positives for pi.
             let mut acc = vec![[0.0f64; 4]; p * l];
-            let mut pi_mass = 0.0;
+            // Kernel mass per label: with partial feedback an entry counts only toward the
+            // labels whose truth it knows (with every label known, the same sum for each).
+            let mut pi_mass = vec![0.0; l];
             let mut pi_pos = vec![0.0; l];
             if cfg.ablations.no_context {
                 for (a, &i) in coalition.iter().enumerate() {
@@ -78,9 +80,9 @@ impl Paper {
                         acc[a * l + k] = [c[0] as f64, c[1] as f64, c[2] as f64, c[3] as f64];
                     }
                 }
-                pi_mass = bank.len() as f64;
-                for (k, v) in pi_pos.iter_mut().enumerate() {
-                    *v = bank.global_positives(k) as f64;
+                for k in 0..l {
+                    pi_mass[k] = bank.global_known(k) as f64;
+                    pi_pos[k] = bank.global_positives(k) as f64;
                 }
             } else {
                 let kappa: Vec<f64> = nb.iter().map(|n| n.sim.max(0.0).powf(cfg.tau)).collect();
@@ -94,6 +96,7 @@ impl Paper {
                             let r = bank.report(n.pos, i, k);
                             let y = bank.truth(n.pos, k);
                             let cell = match (r, y) {
+                                (_, 2..) => continue,
                                 (1, 1) => 0,
                                 (0, 1) => 1,
                                 (1, 0) => 2,
@@ -104,10 +107,14 @@ impl Paper {
                     }
                 }
                 for (idx, n) in nb.iter().enumerate().take(cfg.k_prior) {
-                    pi_mass += kappa[idx];
-                    for (k, v) in pi_pos.iter_mut().enumerate() {
-                        if bank.truth(n.pos, k) != 0 {
-                            *v += kappa[idx];
+                    for k in 0..l {
+                        match bank.truth(n.pos, k) {
+                            0 => pi_mass[k] += kappa[idx],
+                            1 => {
+                                pi_mass[k] += kappa[idx];
+                                pi_pos[k] += kappa[idx];
+                            }
+                            _ => {}
                         }
                     }
                 }
@@ -119,8 +126,8 @@ impl Paper {
                 theta_neg[idx] = an / (an + bn);
             }
             for k in 0..l {
-                prior[k] =
-                    (cfg.prior_alpha + pi_pos[k]) / (cfg.prior_alpha + cfg.prior_beta + pi_mass);
+                prior[k] = (cfg.prior_alpha + pi_pos[k])
+                    / (cfg.prior_alpha + cfg.prior_beta + pi_mass[k]);
             }
         }
         let mut rho = vec![0.0; p * p * l];
@@ -156,11 +163,17 @@ impl Paper {
     }
 
     /// A labelled round joins the bank and the correlation window, and the threshold is refitted
-    /// on the posteriors it got at inference.
+    /// on the posteriors it got at inference. A later (partial) feedback on a round already in
+    /// the bank merges its labels into that entry; the windows take the new labels as one more
+    /// entry (the labels an override replaced stay in them until they slide out).
     pub fn apply(&mut self, lr: &LabelledRound) {
         let r = &lr.round;
-        self.bank
-            .push(lr.seq, &r.context, &r.present, &r.reports, &lr.truth);
+        match self.bank.position(lr.seq) {
+            Some(pos) => self.bank.merge_truth(pos, &lr.truth),
+            None => self
+                .bank
+                .push(lr.seq, &r.context, &r.present, &r.reports, &lr.truth),
+        }
         self.corr.push(&r.present, &r.reports, &lr.truth);
         self.threshold.push(&lr.q, &lr.truth);
     }

@@ -184,7 +184,8 @@ impl Calibrator {
         for _ in 0..self.steps {
             let mut acc = Acc::default();
             for (x, y) in &self.rounds {
-                for k in 0..self.l {
+                // Labels of unknown truth (partial feedback) fit nothing.
+                for k in (0..self.l).filter(|&k| y[k] <= 1) {
                     acc.add(&self.pooled, x[k], y[k]);
                 }
             }
@@ -195,7 +196,7 @@ impl Calibrator {
             let mut th = self.per_label[k];
             for _ in 0..self.steps {
                 let mut acc = Acc::default();
-                for (x, y) in &self.rounds {
+                for (x, y) in self.rounds.iter().filter(|(_, y)| y[k] <= 1) {
                     acc.add(&th, x[k], y[k]);
                 }
                 th = self.clamp(acc.step(th, centre, self.label_prior));

@@ -47,6 +47,9 @@ struct GlobalSums {
     /// Per label: weighted sum of soft truths.
     pos: Vec<f64>,
     mass: f64,
+    /// Per label: the extra weight of partially labelled entries' known labels over the
+    /// unlabelled weight `mass` counts them with (all zero without partial feedback).
+    mass_known: Vec<f64>,
     /// Per reporter pair and label: counts `[00, 10, 01, 11]` of the error indicators
     /// `(e_i, e_j)` over the labelled entries (the `pool` guardrail).
     pairs: Vec<[f64; 4]>,
@@ -66,6 +69,7 @@ impl GlobalSums {
             cells: vec![[0.0; 4]; n * l],
             pos: vec![0.0; l],
             mass: 0.0,
+            mass_known: vec![0.0; l],
             pairs: vec![[0.0; 4]; n * n.saturating_sub(1) / 2 * l],
             updates: 0,
             unlabelled,
@@ -273,6 +277,9 @@ impl Adaptive {
     #[allow(clippy::needless_range_loop)]
     fn global_add(&mut self, cx: &Ctx, pos: usize, sign: f64) {
         let wgt = sign * self.global_weight(cx, pos);
+        if self.pool.is_partial(pos) {
+            self.global_add_known(cx, pos, sign, wgt);
+        }
         if wgt == 0.0 {
             return;
         }
@@ -338,6 +345,63 @@ impl Adaptive {
         }
     }
 
+    /// The known labels of a partially labelled entry weigh as a labelled entry's do: on top of
+    /// the unlabelled weight `wgt` that [`Adaptive::global_add`] gives the whole entry, each
+    /// known label gets the difference, in its cells, its prior and (as labelled entries do) its
+    /// error co-occurrences.
+    #[allow(clippy::needless_range_loop)]
+    fn global_add_known(&mut self, cx: &Ctx, pos: usize, sign: f64, wgt: f64) {
+        let a = &cx.cfg.adaptive;
+        let c = self.pool.clock(pos) as f64 - self.global.base as f64;
+        let full = sign * decay(-c, a.half_life);
+        let extra = full - wgt;
+        let (wpi_full, wpi) = if a.decay_prior || a.half_life == 0.0 {
+            (full, wgt)
+        } else {
+            (sign, sign * self.global.unlabelled)
+        };
+        let extra_pi = wpi_full - wpi;
+        let (n, l) = (cx.n, cx.l);
+        let pool = &self.pool;
+        let g = &mut self.global;
+        let t = pool.soft(pos);
+        for k in 0..l {
+            if !pool.known(pos, k) {
+                continue;
+            }
+            let tk = t[k];
+            for i in 0..n {
+                if !pool.bank.present(pos, i) {
+                    continue;
+                }
+                let c = &mut g.cells[i * l + k];
+                if pool.bank.report(pos, i, k) != 0 {
+                    c[0] += extra * tk;
+                    c[2] += extra * (1.0 - tk);
+                } else {
+                    c[1] += extra * tk;
+                    c[3] += extra * (1.0 - tk);
+                }
+            }
+            g.pos[k] += extra_pi * tk;
+            g.mass_known[k] += extra_pi;
+            for i in 0..n {
+                if !pool.bank.present(pos, i) {
+                    continue;
+                }
+                for j in i + 1..n {
+                    if !pool.bank.present(pos, j) {
+                        continue;
+                    }
+                    let ri = pool.bank.report(pos, i, k) as usize;
+                    let rj = pool.bank.report(pos, j, k) as usize;
+                    let (ei, ej) = if tk > 0.5 { (1 - ri, 1 - rj) } else { (ri, rj) };
+                    g.pairs[pair_index(n, i, j) * l + k][ei + 2 * ej] += full;
+                }
+            }
+        }
+    }
+
     /// Recomputes the whole-pool sums from scratch at the current clock (clears the rounding
     /// that incremental updates accumulate, and rebases the decay).
     fn global_rebuild(&mut self, cx: &Ctx) {
@@ -387,7 +451,7 @@ impl Adaptive {
             1.0
         };
         let m = a.prior_pi_strength;
-        (0.5 * m + s * g.pos[k]) / (m + s * g.mass)
+        (0.5 * m + s * g.pos[k]) / (m + s * (g.mass + g.mass_known[k]))
     }
 
     /// The frozen inputs of a round with reports `(present, reports)` whose neighbours in the
@@ -455,20 +519,48 @@ impl Adaptive {
             let mut acc = vec![[0.0f64; 4]; p * l];
             let mut pi_mass = 0.0;
             let mut pi_pos = vec![0.0; l];
-            let weight = |pos: usize, sim: f64, decayed: bool| -> f64 {
+            // The entry's weight before the unlabelled factor, and after it.
+            let weight = |pos: usize, sim: f64, decayed: bool| -> (f64, f64) {
                 let mut w = sim.max(0.0).powf(cfg.tau);
                 if decayed && a.half_life > 0.0 {
                     let age = (at as f64 - pool.clock(pos) as f64).abs();
                     w *= decay(age, a.half_life);
                 }
+                let full = w;
                 if !pool.is_labelled(pos) {
                     w *= u;
                 }
-                w
+                (full, w)
             };
+            // Per label: the extra prior mass of partially labelled neighbours' known labels.
+            let mut pi_known = vec![0.0; l];
             pool.prefetch(nb.iter().take(cfg.k.max(cfg.k_prior)).map(|n| n.0));
             for &(pos, sim) in nb.iter().take(cfg.k) {
-                let w = weight(pos, sim, true);
+                let (full, w) = weight(pos, sim, true);
+                if pool.is_partial(pos) && full > w {
+                    // Known labels of a partly labelled neighbour weigh as labelled ones.
+                    let t = pool.soft(pos);
+                    for (m, &i) in coalition.iter().enumerate() {
+                        if !pool.bank.present(pos, i) {
+                            continue;
+                        }
+                        for k in (0..l).filter(|&k| pool.known(pos, k)) {
+                            let x = full - w;
+                            let c = &mut acc[m * l + k];
+                            let on = pool.bank.report(pos, i, k) != 0;
+                            match on {
+                                true => {
+                                    c[0] += x * t[k];
+                                    c[2] += x * (1.0 - t[k]);
+                                }
+                                false => {
+                                    c[1] += x * t[k];
+                                    c[3] += x * (1.0 - t[k]);
+                                }
+                            }
+                        }
+                    }
+                }
                 if w == 0.0 {
                     continue;
                 }
@@ -494,7 +586,14 @@ impl Adaptive {
                 }
             }
             for &(pos, sim) in nb.iter().take(cfg.k_prior) {
-                let w = weight(pos, sim, a.decay_prior);
+                let (full, w) = weight(pos, sim, a.decay_prior);
+                if pool.is_partial(pos) && full > w {
+                    let t = pool.soft(pos);
+                    for k in (0..l).filter(|&k| pool.known(pos, k)) {
+                        pi_known[k] += full - w;
+                        pi_pos[k] += (full - w) * t[k];
+                    }
+                }
                 if w == 0.0 {
                     continue;
                 }
@@ -513,7 +612,7 @@ impl Adaptive {
             }
             for k in 0..l {
                 let (pa, pb) = pi_prior[k];
-                prior[k] = (pa + pi_pos[k]) / (pa + pb + pi_mass);
+                prior[k] = (pa + pi_pos[k]) / (pa + pb + (pi_mass + pi_known[k]));
             }
         }
         let mut rho = vec![0.0; p * p * l];
@@ -704,7 +803,15 @@ impl Adaptive {
             .collect();
         let (present, reports, at) = (pool.present(pos), pool.reports(pos), pool.clock(pos));
         let s = self.signals(cx, &present, &reports, &nb, at);
-        let t = self.soft_truth(cx, &s, None);
+        let mut t = self.soft_truth(cx, &s, None);
+        if pool.is_partial(pos) {
+            // Only the unknown labels are estimated; the known ones stay the truth.
+            for (k, tk) in t.iter_mut().enumerate() {
+                if pool.known(pos, k) {
+                    *tk = pool.soft(pos)[k];
+                }
+            }
+        }
         self.global_add(cx, pos, -1.0);
         self.pool.set_soft(pos, &t);
         self.global_add(cx, pos, 1.0);
@@ -781,9 +888,11 @@ impl Adaptive {
         if cap == 0 || unlabelled <= cap + (cap / 16).max(1) {
             return;
         }
+        // Partly labelled entries stay, as labelled ones do.
         let out: Vec<usize> = self.pool.unlabelled()[..unlabelled - cap]
             .iter()
             .map(|&p| p as usize)
+            .filter(|&p| !self.pool.is_partial(p))
             .collect();
         for &pos in &out {
             self.global_add(cx, pos, -1.0);
@@ -834,7 +943,7 @@ impl Adaptive {
         if a.vote_fallback && parts.is_some() {
             let t = self.thresholds(cx);
             let vote = majority_vote(&lr.round, l);
-            for k in 0..l {
+            for k in (0..l).filter(|&k| lr.truth[k] <= 1) {
                 let y = lr.truth[k] != 0;
                 self.model_score.add(model_q[k] >= t[k], y);
                 self.vote_score.add(vote[k] != 0, y);
@@ -842,26 +951,36 @@ impl Adaptive {
         }
         self.threshold.push(&model_q, &lr.truth);
         let pos = match self.pool.position(lr.seq) {
-            Some(pos) if self.pool.is_labelled(pos) => None,
+            // Labels it already had, or new ones (partial feedback), or an override.
             Some(pos) => {
                 self.global_add(cx, pos, -1.0);
-                self.pool.set_label(pos, &lr.truth);
+                self.pool.set_known(pos, &lr.truth);
                 self.global_add(cx, pos, 1.0);
                 Some(pos)
             }
             None => {
                 let scan = self.scan_for(cx, &lr.round.context, None);
-                let soft: Vec<f64> = lr.truth.iter().map(|&v| v as f64).collect();
+                let full = lr.truth.iter().all(|&v| v <= 1);
+                // Labels the feedback leaves unknown start from the posterior the round got.
+                let soft: Vec<f64> = lr
+                    .truth
+                    .iter()
+                    .zip(&lr.q)
+                    .map(|(&v, &q)| if v <= 1 { v as f64 } else { q })
+                    .collect();
                 let pos = self.pool.insert(
                     lr.seq,
                     &lr.round.context,
                     &lr.round.present,
                     &lr.round.reports,
                     &soft,
-                    true,
+                    full,
                     cx.labelled,
                     &scan,
                 );
+                if !full {
+                    self.pool.set_known(pos, &lr.truth);
+                }
                 self.global_add(cx, pos, 1.0);
                 Some(pos)
             }

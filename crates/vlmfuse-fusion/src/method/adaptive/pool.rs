@@ -53,7 +53,13 @@ pub struct Pool {
     half_life: f64,
     /// `L` soft truths per entry: the truth itself once labelled.
     soft: Vec<f64>,
+    /// Every label's truth is known (a fully labelled entry: EM never visits it).
     labelled: Vec<bool>,
+    /// Some labels' truth is known, not all (partial feedback): the entry stays with the
+    /// unlabelled ones for EM, which re-estimates only its unknown labels, is never evicted,
+    /// and its known labels weigh as labelled ones do. Which labels are known is its bank
+    /// truth (0/1 known, [`crate::UNKNOWN`] not).
+    partial: Vec<bool>,
     /// The engine's labelled-round count when the entry was observed (its age clock).
     clock: Vec<u64>,
     /// Per entry: up to `kmax` neighbours, best first.
@@ -106,6 +112,7 @@ impl Pool {
             half_life,
             soft: Vec::new(),
             labelled: Vec::new(),
+            partial: Vec::new(),
             clock: Vec::new(),
             nb: Vec::new(),
             by_seq: HashMap::new(),
@@ -248,6 +255,7 @@ impl Pool {
             if w != r {
                 self.soft.copy_within(r * l..(r + 1) * l, w * l);
                 self.labelled[w] = self.labelled[r];
+                self.partial[w] = self.partial[r];
                 self.clock[w] = self.clock[r];
                 self.nb.swap(w, r);
             }
@@ -255,6 +263,7 @@ impl Pool {
         }
         self.soft.truncate(w * l);
         self.labelled.truncate(w);
+        self.partial.truncate(w);
         self.clock.truncate(w);
         self.nb.truncate(w);
         for list in &mut self.nb {
@@ -318,6 +327,37 @@ impl Pool {
 
     pub fn is_labelled(&self, pos: usize) -> bool {
         self.labelled[pos]
+    }
+
+    /// Some, not all, of the entry's labels are known.
+    #[inline]
+    pub fn is_partial(&self, pos: usize) -> bool {
+        self.partial[pos]
+    }
+
+    /// Whether label `k` of entry `pos` is known (labelled, or given by a partial feedback).
+    #[inline]
+    pub fn known(&self, pos: usize, k: usize) -> bool {
+        self.labelled[pos] || self.bank.truth(pos, k) <= 1
+    }
+
+    /// A (partial) feedback on entry `pos`: each label `y` knows (0 or 1) becomes known with
+    /// that value, overriding an earlier one; the entry is labelled once every label is known.
+    pub fn set_known(&mut self, pos: usize, y: &[u8]) {
+        self.bank.merge_truth(pos, y);
+        let l = self.l;
+        for (k, &v) in y.iter().enumerate() {
+            if v <= 1 {
+                self.soft[pos * l + k] = v as f64;
+            }
+        }
+        let full: Vec<u8> = (0..l).map(|k| self.bank.truth(pos, k)).collect();
+        if full.iter().all(|&v| v <= 1) {
+            self.partial[pos] = false;
+            self.set_label(pos, &full);
+        } else {
+            self.partial[pos] = !self.labelled[pos];
+        }
     }
 
     /// Positions of the unlabelled entries, ascending.
@@ -631,10 +671,16 @@ impl Pool {
         scan: &Scan,
     ) -> usize {
         let pos = self.len();
-        let zeros = vec![0u8; self.l];
-        self.bank.push(seq, context, present, reports, &zeros);
+        // The bank's truths say which labels are known (see `partial`).
+        let truth: Vec<u8> = if labelled {
+            soft.iter().map(|&t| (t > 0.5) as u8).collect()
+        } else {
+            vec![crate::UNKNOWN; self.l]
+        };
+        self.bank.push(seq, context, present, reports, &truth);
         self.soft.extend_from_slice(soft);
         self.labelled.push(labelled);
+        self.partial.push(false);
         if !labelled {
             self.unlabelled.push(pos as u32);
         }
