@@ -230,9 +230,10 @@ impl Ontology {
 
     /// The ids of the labels that are on, in ontology order.
     pub fn decode(&self, bits: &[u8]) -> Vec<String> {
+        // 1 only: a truth vector marks labels of unknown truth 2 (partial feedback).
         bits.iter()
             .enumerate()
-            .filter(|(_, &b)| b != 0)
+            .filter(|(_, &b)| b == 1)
             .map(|(k, _)| self.labels[k].id.clone())
             .collect()
     }

@@ -60,6 +60,9 @@ pub struct FeedbackEvent {
     /// What was stored with it; `None`: the round's [`RoundEvent`] (with `credit_later`) came
     /// earlier in this replay, and the credit is computed now from the inference it got.
     pub stored: Option<StoredLabel>,
+    /// Another feedback on this round follows (partial feedback comes in parts): without a
+    /// stored outcome its credit needs the round's inference too, so the replay keeps it.
+    pub more: bool,
 }
 
 /// A feedback as stored: the round, the posteriors it was served and the outcome computed then.
@@ -157,7 +160,12 @@ impl<'e> Replay<'e> {
                 (lr, s.outcome)
             }
             None => {
-                let (round, inf) = self.pending.remove(&seq).ok_or_else(|| {
+                let kept = if ev.more {
+                    self.pending.get(&seq).cloned()
+                } else {
+                    self.pending.remove(&seq)
+                };
+                let (round, inf) = kept.ok_or_else(|| {
                     ReplayError::Inconsistent(format!(
                         "feedback for round {seq} precedes the round in event order"
                     ))
@@ -359,6 +367,7 @@ pub fn replay(
                     seq,
                     truth: truth.clone(),
                     stored: None,
+                    more: false,
                 })?;
                 if let ShapleyMethod::Sampled { std_error: se, .. } = &outcome.credit.method {
                     let mut full = vec![0.0; inf.w_used.len()];

@@ -79,6 +79,7 @@ fn main() {
                 rounds_before: seq + m,
                 truth,
                 outcome: o,
+                source: "human".into(),
             });
             rounds.push(NewRound {
                 round,

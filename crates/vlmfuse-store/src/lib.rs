@@ -25,7 +25,7 @@ use vlmfuse_fusion::LabelledRound;
 use vlmfuse_fusion::{Engine, FeedbackOutcome, FusionError, Inference, Round};
 
 /// Bumped when the schema changes incompatibly; an old database is then refused, not misread.
-pub const SCHEMA_VERSION: i64 = 1;
+pub const SCHEMA_VERSION: i64 = 2;
 
 /// The file under the data directory.
 pub const DB_FILE: &str = "vlmfuse.db";
@@ -203,7 +203,11 @@ pub struct StoredFeedback {
     /// replays both kinds of event in this order. Databases written before the column existed
     /// read `seq + 1` (the earliest it can have been).
     pub rounds_before: u64,
+    /// Per label: 0 or 1 where this event gave (and the engine learned) the truth,
+    /// [`vlmfuse_fusion::UNKNOWN`] elsewhere.
     pub truth: Vec<u8>,
+    /// Who gave it (`human`, `kinematics`, `detector` or a caller's name).
+    pub source: String,
     pub outcome: FeedbackOutcome,
 }
 
@@ -298,6 +302,7 @@ struct Replayed {
     /// Rounds the replay fed to the engine.
     rounds_fed: u64,
     inferences: Vec<(u64, Inference)>,
+    /// By labelling order (a round may have several).
     outcomes: Vec<(u64, FeedbackOutcome)>,
 }
 
@@ -385,14 +390,19 @@ CREATE TABLE IF NOT EXISTS round_detail (
     inference TEXT NOT NULL,    -- vlmfuse_fusion::Inference as JSON (signals, q, w_used, ...)
     request   TEXT NOT NULL     -- the request as received, plus later raw texts/metadata
 );
+-- One row per feedback event, in labelling order. A round may have several (partial
+-- feedback: labels from the vehicle's signals, later a person's); each row holds what that
+-- event taught, and the round's truth is their merge.
 CREATE TABLE IF NOT EXISTS feedback (
-    seq            INTEGER PRIMARY KEY REFERENCES rounds(seq),
-    labelled_order INTEGER NOT NULL UNIQUE,
+    labelled_order INTEGER PRIMARY KEY,
+    seq            INTEGER NOT NULL REFERENCES rounds(seq),
     rounds_before  INTEGER,         -- rounds stored when it was applied (event order)
     created_ms     INTEGER NOT NULL,
-    truth          BLOB NOT NULL,   -- L bytes, 0/1
+    truth          BLOB NOT NULL,   -- L bytes: 0/1 learned from this event, 2 not in it
+    source         TEXT NOT NULL DEFAULT 'human',  -- who said it: human, kinematics, ...
     outcome        TEXT NOT NULL    -- vlmfuse_fusion::FeedbackOutcome as JSON
 );
+CREATE INDEX IF NOT EXISTS feedback_seq ON feedback (seq);
 -- Idempotency keys of /v1/fuse and /v1/infer: the answer a retry with the same key gets.
 -- Written in the transaction that stores the rounds, so a request that timed out after it was
 -- queued still leaves its answer for the retry; rows older than the configured TTL are pruned.
@@ -508,19 +518,25 @@ impl Store {
                 )?;
             }
             Some(v) if v == SCHEMA_VERSION.to_string() => {}
+            Some(v) if v == "1" => {
+                // Databases from before the event order was recorded gain the column (NULL
+                // rows read as `seq + 1`); adding a nullable column rewrites nothing.
+                let has_order: bool = conn
+                    .prepare(
+                        "SELECT 1 FROM pragma_table_info('feedback') WHERE name = 'rounds_before'",
+                    )?
+                    .exists([])?;
+                if !has_order {
+                    conn.execute("ALTER TABLE feedback ADD COLUMN rounds_before INTEGER", [])?;
+                }
+                migrate_v1_feedback(&conn)?;
+                tracing::info!(db = %path.display(), "database schema upgraded from 1 to 2");
+            }
             Some(v) => {
                 return Err(StoreError::Mismatch(format!(
                     "schema version {v}, this build reads {SCHEMA_VERSION}"
                 )))
             }
-        }
-        // Databases from before the event order was recorded gain the column (NULL rows read
-        // as `seq + 1`); adding a nullable column rewrites nothing.
-        let has_order: bool = conn
-            .prepare("SELECT 1 FROM pragma_table_info('feedback') WHERE name = 'rounds_before'")?
-            .exists([])?;
-        if !has_order {
-            conn.execute("ALTER TABLE feedback ADD COLUMN rounds_before INTEGER", [])?;
         }
         let mut store = Self {
             conn,
@@ -966,7 +982,9 @@ impl Store {
         };
         let mut fb_stmt = self.conn.prepare(
             "SELECT r.seq, r.context, r.present, r.reports, r.q, f.truth, f.outcome,
-                    f.rounds_before
+                    f.rounds_before, f.labelled_order,
+                    EXISTS (SELECT 1 FROM feedback g
+                            WHERE g.seq = f.seq AND g.labelled_order > f.labelled_order)
              FROM feedback f JOIN rounds r ON r.seq = f.seq
              WHERE f.labelled_order >= ?1 ORDER BY f.labelled_order",
         )?;
@@ -985,13 +1003,15 @@ impl Store {
                     outcome: serde_json::from_slice(row.get_ref(6)?.as_bytes()?)?,
                 })
             };
+            let order = row.get::<_, i64>(8)? as u64;
             let outcome = replay.feedback(FeedbackEvent {
                 seq,
                 truth: row.get_ref(5)?.as_blob()?.to_vec(),
                 stored,
+                more: row.get::<_, bool>(9)?,
             })?;
             if fresh {
-                out.outcomes.push((seq, outcome));
+                out.outcomes.push((order, outcome));
             }
             out.labelled += 1;
         }
@@ -1011,9 +1031,11 @@ impl Store {
             .conn
             .transaction_with_behavior(TransactionBehavior::Immediate)?;
         {
-            let mut up = tx.prepare_cached("UPDATE feedback SET outcome = ?2 WHERE seq = ?1")?;
-            for (seq, o) in &replayed.outcomes {
-                up.execute(params![*seq as i64, serde_json::to_string(o)?])?;
+            let mut up = tx.prepare_cached(
+                "UPDATE feedback SET outcome = ?2 WHERE labelled_order = ?1",
+            )?;
+            for (order, o) in &replayed.outcomes {
+                up.execute(params![*order as i64, serde_json::to_string(o)?])?;
             }
             let mut det =
                 tx.prepare_cached("UPDATE round_detail SET inference = ?2 WHERE seq = ?1")?;
@@ -1330,33 +1352,34 @@ impl Store {
         })
     }
 
-    /// The feedback acknowledged for a round, if any.
-    pub fn feedback(&self, seq: u64) -> Result<Option<StoredFeedback>, StoreError> {
-        let row = self
-            .conn
-            .query_row(
-                "SELECT labelled_order, truth, outcome, rounds_before FROM feedback WHERE seq = ?1",
-                [seq as i64],
-                |r| {
-                    Ok((
-                        r.get::<_, i64>(0)?,
-                        r.get::<_, Vec<u8>>(1)?,
-                        r.get::<_, String>(2)?,
-                        r.get::<_, Option<i64>>(3)?,
-                    ))
-                },
-            )
-            .optional()?;
-        let Some((order, truth, outcome, before)) = row else {
-            return Ok(None);
-        };
-        Ok(Some(StoredFeedback {
-            seq,
-            labelled_order: order as u64,
-            rounds_before: before.map_or(seq + 1, |b| b as u64),
-            truth,
-            outcome: serde_json::from_str(&outcome)?,
-        }))
+    /// The feedback events acknowledged for a round, in labelling order (empty: none).
+    pub fn feedback(&self, seq: u64) -> Result<Vec<StoredFeedback>, StoreError> {
+        let mut st = self.conn.prepare_cached(
+            "SELECT labelled_order, truth, outcome, rounds_before, source FROM feedback
+             WHERE seq = ?1 ORDER BY labelled_order",
+        )?;
+        let rows = st.query_map([seq as i64], |r| {
+            Ok((
+                r.get::<_, i64>(0)?,
+                r.get::<_, Vec<u8>>(1)?,
+                r.get::<_, String>(2)?,
+                r.get::<_, Option<i64>>(3)?,
+                r.get::<_, String>(4)?,
+            ))
+        })?;
+        let mut out = Vec::new();
+        for row in rows {
+            let (order, truth, outcome, before, source) = row?;
+            out.push(StoredFeedback {
+                seq,
+                labelled_order: order as u64,
+                rounds_before: before.map_or(seq + 1, |b| b as u64),
+                truth,
+                source,
+                outcome: serde_json::from_str(&outcome)?,
+            });
+        }
+        Ok(out)
     }
 
     /// Commits feedback, in labelling order, and the reputations the last one leads to, in one
@@ -1372,6 +1395,34 @@ impl Store {
         tx.commit()?;
         Ok(())
     }
+}
+
+/// Schema 1 kept one feedback per round (`seq` its key); schema 2 keeps feedback events (partial
+/// feedback comes in parts), keyed by labelling order. The rows are copied as they are (each a
+/// person's full labelling: source `human`), in one transaction with the version.
+fn migrate_v1_feedback(conn: &Connection) -> Result<(), StoreError> {
+    conn.execute_batch(
+        "BEGIN IMMEDIATE;
+         CREATE TABLE feedback_v2 (
+             labelled_order INTEGER PRIMARY KEY,
+             seq            INTEGER NOT NULL REFERENCES rounds(seq),
+             rounds_before  INTEGER,
+             created_ms     INTEGER NOT NULL,
+             truth          BLOB NOT NULL,
+             source         TEXT NOT NULL DEFAULT 'human',
+             outcome        TEXT NOT NULL
+         );
+         INSERT INTO feedback_v2 (labelled_order, seq, rounds_before, created_ms, truth, source,
+                                  outcome)
+             SELECT labelled_order, seq, rounds_before, created_ms, truth, 'human', outcome
+             FROM feedback;
+         DROP TABLE feedback;
+         ALTER TABLE feedback_v2 RENAME TO feedback;
+         CREATE INDEX IF NOT EXISTS feedback_seq ON feedback (seq);
+         UPDATE meta SET value = '2' WHERE key = 'schema_version';
+         COMMIT;",
+    )?;
+    Ok(())
 }
 
 /// `fbs` in labelling order inside `tx`, and the state row after the last.
@@ -1391,8 +1442,9 @@ fn write_feedback(
             |r| r.get(0),
         )?;
         let mut ins = tx.prepare_cached(
-            "INSERT INTO feedback (seq, labelled_order, created_ms, truth, outcome, rounds_before)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+            "INSERT INTO feedback (seq, labelled_order, created_ms, truth, outcome, rounds_before,
+                                   source)
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
         )?;
         let now = now_ms();
         for (i, fb) in fbs.iter().enumerate() {
@@ -1409,7 +1461,8 @@ fn write_feedback(
                 now,
                 &fb.truth,
                 serde_json::to_string(&fb.outcome)?,
-                fb.rounds_before as i64
+                fb.rounds_before as i64,
+                &fb.source
             ])?;
         }
         tx.execute(

@@ -110,9 +110,10 @@ fn play(engine: &mut Engine, store: &mut Store, from: u64, to: u64) {
             rounds_before: i + 1,
             truth: truth.clone(),
             outcome: outcome.clone(),
+            source: "human".into(),
         };
         store.insert_feedback(std::slice::from_ref(&fb)).unwrap();
-        assert_eq!(store.feedback(i).unwrap().unwrap(), fb);
+        assert_eq!(store.feedback(i).unwrap(), vec![fb.clone()]);
         engine
             .apply(
                 &LabelledRound {
@@ -853,4 +854,62 @@ fn snapshots_are_kept_newest_first_and_pruned() {
         !sd.join(".tmp-1-snapshot-x.bin").exists(),
         "a torn write is removed"
     );
+}
+
+/// A schema-1 database (one feedback per round, keyed by `seq`) opens as schema 2 with every
+/// feedback kept (as a person's), and rebuilds the same engine.
+#[test]
+fn a_schema_1_database_is_upgraded_in_place() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut live = engine();
+    let mut store = Store::open(dir.path()).unwrap();
+    store.check_identity(&identity(&live)).unwrap();
+    play(&mut live, &mut store, 0, 40);
+    // Turn it back into what schema 1 wrote.
+    store
+        .conn
+        .execute_batch(
+            "BEGIN;
+             CREATE TABLE feedback_v1 (
+                 seq            INTEGER PRIMARY KEY REFERENCES rounds(seq),
+                 labelled_order INTEGER NOT NULL UNIQUE,
+                 rounds_before  INTEGER,
+                 created_ms     INTEGER NOT NULL,
+                 truth          BLOB NOT NULL,
+                 outcome        TEXT NOT NULL
+             );
+             INSERT INTO feedback_v1 SELECT seq, labelled_order, rounds_before, created_ms,
+                                            truth, outcome FROM feedback;
+             DROP TABLE feedback;
+             ALTER TABLE feedback_v1 RENAME TO feedback;
+             UPDATE meta SET value = '1' WHERE key = 'schema_version';
+             COMMIT;",
+        )
+        .unwrap();
+    drop(store);
+    let mut store = Store::open(dir.path()).unwrap();
+    let v: String = store
+        .conn
+        .query_row(
+            "SELECT value FROM meta WHERE key = 'schema_version'",
+            [],
+            |r| r.get(0),
+        )
+        .unwrap();
+    assert_eq!(v, "2");
+    let fb = store.feedback(3).unwrap();
+    assert_eq!(fb.len(), 1);
+    assert_eq!(fb[0].source, "human");
+    let mut rebuilt = engine();
+    let rep = store.load_engine_full(&mut rebuilt).unwrap();
+    assert_eq!(rep.labelled, 32);
+    assert_eq!(rebuilt.reputations(), live.reputations());
+    // And it takes a second feedback on a round now.
+    let mut second = fb[0].clone();
+    second.labelled_order = 32;
+    second.truth = vec![vlmfuse_fusion::UNKNOWN; 14];
+    second.truth[0] = 1;
+    second.source = "kinematics".into();
+    store.insert_feedback(&[second]).unwrap();
+    assert_eq!(store.feedback(3).unwrap().len(), 2);
 }

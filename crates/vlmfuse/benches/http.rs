@@ -71,6 +71,7 @@ fn prefill(dir: &std::path::Path, bank: u64) {
             rounds_before: bank,
             truth,
             outcome: o,
+            source: "human".into(),
         });
         rounds.push(NewRound {
             round,

@@ -207,6 +207,7 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
                     rounds_before: seq + 1,
                     truth: s.truth.clone(),
                     outcome: o.clone(),
+                    source: "human".into(),
                 }])?;
                 in_store += ts.elapsed();
                 engine.apply(

@@ -329,6 +329,7 @@ fn ingest(
                         rounds_before: seq + 1,
                         truth: truth.clone(),
                         outcome: outcome.clone(),
+                        source: "human".into(),
                     });
                     engine.apply(
                         &LabelledRound {

@@ -113,10 +113,31 @@ pub fn fuse_out(engine: &Engine, seq: u64, id: Option<String>, inf: &Inference) 
     }
 }
 
+/// A label this feedback gave that was not taken, and why.
+#[derive(Serialize)]
+pub struct IgnoredLabel {
+    pub label: String,
+    pub reason: String,
+}
+
 #[derive(Serialize)]
 pub struct FeedbackOut {
     pub round_id: String,
+    /// The round's labels known to be present, every feedback on it merged.
     pub labels: Vec<String>,
+    /// The round's labels whose truth is known (present or not), and who gave each.
+    pub known: Ordered<String>,
+    /// Labels whose truth no feedback has given yet.
+    pub unknown: Vec<String>,
+    /// What this feedback taught: the labels it gave for the first time or overrode, with the
+    /// value each now has. Empty for a repeat.
+    pub learned: Ordered<bool>,
+    /// Labels this feedback gave that were not taken (a person's label stands).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub ignored: Vec<IgnoredLabel>,
+    /// Who gave the feedback whose credit is shown (this one, or for a repeat the round's
+    /// latest).
+    pub source: String,
     /// Shapley value of each reporter present in the round.
     pub shapley: Ordered<f64>,
     pub shapley_method: &'static str,
@@ -149,9 +170,39 @@ pub fn feedback_out(engine: &Engine, done: &FeedbackDone) -> FeedbackOut {
         ShapleyMethod::Sampled { samples, std_error } => (Some(members(std_error)), Some(*samples)),
         _ => (None, None),
     };
+    let ont = engine.ontology();
+    let id = |k: usize| ont.labels()[k].id.clone();
     FeedbackOut {
         round_id: done.round_id.clone(),
-        labels: engine.ontology().decode(&done.feedback.truth),
+        labels: ont.decode(&done.merged),
+        known: Ordered(
+            done.sources
+                .iter()
+                .enumerate()
+                .filter_map(|(k, s)| s.clone().map(|s| (id(k), s)))
+                .collect(),
+        ),
+        unknown: (0..done.merged.len())
+            .filter(|&k| done.merged[k] > 1)
+            .map(id)
+            .collect(),
+        learned: Ordered(
+            done.learned
+                .iter()
+                .enumerate()
+                .filter(|(_, &v)| v <= 1)
+                .map(|(k, &v)| (id(k), v == 1))
+                .collect(),
+        ),
+        ignored: done
+            .ignored
+            .iter()
+            .map(|(k, r)| IgnoredLabel {
+                label: id(*k),
+                reason: r.clone(),
+            })
+            .collect(),
+        source: done.feedback.source.clone(),
         shapley: members(&o.credit.phi),
         shapley_method: o.credit.method.name(),
         shapley_std_error: se,

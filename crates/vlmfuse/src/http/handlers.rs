@@ -50,15 +50,27 @@ pub async fn fuse(
 #[serde(deny_unknown_fields)]
 pub struct FeedbackIn {
     round_id: String,
+    /// The labels that are present.
     labels: Vec<String>,
+    /// The labels whose truth this feedback gives (present or not); absent: all of them.
+    #[serde(default)]
+    known: Option<Vec<String>>,
+    /// Who says so: `human` (the default), `kinematics`, `detector` or a caller's name.
+    #[serde(default)]
+    source: Option<String>,
 }
 
-/// `POST /v1/feedback`: labels a fused round; idempotent per round.
+/// `POST /v1/feedback`: labels a fused round, wholly or in part; idempotent per label.
 pub async fn feedback(
     State(st): State<AppState>,
     ApiJson(body): ApiJson<FeedbackIn>,
 ) -> Result<Response, ApiError> {
-    let (out, repeated) = st.service.feedback(body.round_id, &body.labels).await?;
+    let given = crate::service::FeedbackGiven {
+        labels: body.labels,
+        known: body.known,
+        source: body.source,
+    };
+    let (out, repeated) = st.service.feedback(body.round_id, given).await?;
     let mut resp = axum::Json(out).into_response();
     if repeated {
         resp.headers_mut()

@@ -273,11 +273,11 @@ impl Service {
     pub async fn feedback(
         &self,
         round_id: String,
-        labels: &[String],
+        given: FeedbackGiven,
     ) -> Result<(FeedbackOut, bool), ServiceError> {
-        let truth = {
+        let (truth, source) = {
             let eng = self.shared.engine.read().await;
-            eng.encode_truth(labels)?
+            given.encode(&eng)?
         };
         let (tx, rx) = oneshot::channel();
         // Once sent, the writer finishes the feedback even if this request is dropped (timeout,
@@ -285,11 +285,70 @@ impl Service {
         self.send(Cmd::Feedback {
             round_id,
             truth,
+            source,
             reply: tx,
         })?;
         let done: FeedbackDone = rx.await.map_err(|_| ServiceError::WriterStopped)??;
         let eng = self.shared.engine.read().await;
         Ok((feedback_out(&eng, &done), done.repeated))
+    }
+}
+
+/// A feedback as a caller gives it: the labels present, the labels whose truth it gives
+/// (`None`: all) and who gives it (`None`: a person).
+#[derive(Debug, Clone, Default)]
+pub struct FeedbackGiven {
+    pub labels: Vec<String>,
+    pub known: Option<Vec<String>>,
+    pub source: Option<String>,
+}
+
+/// Longest `source` name accepted.
+const MAX_SOURCE: usize = 64;
+
+impl FeedbackGiven {
+    /// The truth vector (0/1 for the labels it gives, `UNKNOWN` for the rest) and the checked
+    /// source. Refuses a label outside the ontology, a present label it does not call known,
+    /// an empty `known`, and a source that is empty, long or not `[A-Za-z0-9_.:-]`.
+    pub fn encode(&self, eng: &vlmfuse_fusion::Engine) -> Result<(Vec<u8>, String), ServiceError> {
+        let bad = |m: String| ServiceError::Invalid(m);
+        let source = self.source.clone().unwrap_or_else(|| "human".into());
+        if source.is_empty()
+            || source.len() > MAX_SOURCE
+            || !source
+                .bytes()
+                .all(|b| b.is_ascii_alphanumeric() || b"_.:-".contains(&b))
+        {
+            return Err(bad(format!(
+                "\"source\" must be 1 to {MAX_SOURCE} characters of A-Z a-z 0-9 _ . : - \
+                 (e.g. \"human\", \"kinematics\", \"detector\"), not {source:?}"
+            )));
+        }
+        let present = eng.encode_truth(&self.labels)?;
+        let truth = match &self.known {
+            None => present,
+            Some(known) => {
+                if known.is_empty() {
+                    return Err(bad(
+                        "\"known\" is empty: a feedback must give the truth of at least one \
+                         label (leave \"known\" out to give all of them)"
+                            .into(),
+                    ));
+                }
+                let k = eng.encode_truth(known)?;
+                if let Some(i) = (0..k.len()).find(|&i| present[i] == 1 && k[i] == 0) {
+                    return Err(bad(format!(
+                        "label {:?} is in \"labels\" but not in \"known\"",
+                        eng.ontology().labels()[i].id
+                    )));
+                }
+                k.iter()
+                    .zip(&present)
+                    .map(|(&kn, &p)| if kn == 1 { p } else { vlmfuse_fusion::UNKNOWN })
+                    .collect()
+            }
+        };
+        Ok((truth, source))
     }
 }
 

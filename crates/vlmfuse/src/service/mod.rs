@@ -18,7 +18,7 @@ mod readiness;
 pub mod writer;
 
 pub use error::ServiceError;
-pub use fuse::{fingerprint, idempotency_key, Answer, IdemRequest};
+pub use fuse::{fingerprint, idempotency_key, Answer, FeedbackGiven, IdemRequest};
 
 /// Longest idempotency key (`Idempotency-Key` or `request_id`).
 pub fn fuse_max_key_len() -> usize {

@@ -37,10 +37,12 @@ pub enum Cmd {
         key: String,
         reply: oneshot::Sender<Result<Option<IdempotencyRecord>, ServiceError>>,
     },
-    /// Label a round; `truth` is already validated against the ontology.
+    /// Label a round; `truth` is already validated against the ontology (0/1 per label it
+    /// gives, [`vlmfuse_fusion::UNKNOWN`] for the others), `source` checked.
     Feedback {
         round_id: String,
         truth: Vec<u8>,
+        source: String,
         reply: oneshot::Sender<Result<FeedbackDone, ServiceError>>,
     },
 }
@@ -83,11 +85,89 @@ pub fn key_reused(key: &str, route: &str, stored_route: &str) -> ServiceError {
 /// An acknowledged feedback (committed), new or repeated.
 pub struct FeedbackDone {
     pub round_id: String,
+    /// The event this feedback stored, or (a repeat) the round's latest one.
     pub feedback: StoredFeedback,
     /// The round's coalition (reporter indices).
     pub coalition: Vec<usize>,
-    /// True when this repeats an earlier feedback with the same labels.
+    /// True when this feedback taught nothing new: every label it gives was already known
+    /// with that value (or a person's label stands against it). Nothing was stored.
     pub repeated: bool,
+    /// The round's truth after this feedback, every event merged: 0/1, or `UNKNOWN`.
+    pub merged: Vec<u8>,
+    /// Per label, who gave the truth in force (`None`: unknown).
+    pub sources: Vec<Option<String>>,
+    /// What this feedback taught: 0/1 where it gave a new label or overrode one.
+    pub learned: Vec<u8>,
+    /// Labels this feedback gave that were not taken, with why (a person's label stands).
+    pub ignored: Vec<(usize, String)>,
+}
+
+/// The source whose labels override every other's.
+pub const HUMAN: &str = "human";
+
+/// The round's truth as its stored events leave it: per label the value and who gave it, the
+/// later event winning (an override comes after what it overrides).
+fn merged_truth(l: usize, events: &[StoredFeedback]) -> (Vec<u8>, Vec<Option<String>>) {
+    let mut y = vec![vlmfuse_fusion::UNKNOWN; l];
+    let mut src: Vec<Option<String>> = vec![None; l];
+    for ev in events {
+        for (k, &v) in ev.truth.iter().enumerate().take(l) {
+            if v <= 1 {
+                y[k] = v;
+                src[k] = Some(ev.source.clone());
+            }
+        }
+    }
+    (y, src)
+}
+
+/// What a new feedback teaches against the round's merged truth (docs/METHOD.md, "Partial
+/// feedback"): a label not known yet is learned; the same value again is nothing new; another
+/// value is learned when a person overrides a derived source, ignored when a derived source
+/// contradicts a person, and refused (409, nothing stored) between two sources of the same rank.
+pub fn merge_feedback(
+    ontology: &vlmfuse_fusion::Ontology,
+    merged: &[u8],
+    sources: &[Option<String>],
+    truth: &[u8],
+    source: &str,
+) -> Result<(Vec<u8>, Vec<(usize, String)>), ServiceError> {
+    let mut learned = vec![vlmfuse_fusion::UNKNOWN; truth.len()];
+    let mut ignored = Vec::new();
+    let mut conflicts = Vec::new();
+    let name = |k: usize| ontology.labels()[k].id.clone();
+    let said = |v: u8| if v == 1 { "present" } else { "absent" };
+    for (k, &v) in truth.iter().enumerate() {
+        if v > 1 {
+            continue;
+        }
+        let cur = merged[k];
+        if cur > 1 {
+            learned[k] = v;
+            continue;
+        }
+        if cur == v {
+            continue;
+        }
+        let by = sources[k].as_deref().unwrap_or(HUMAN);
+        match (source == HUMAN, by == HUMAN) {
+            (true, false) => learned[k] = v,
+            (false, true) => ignored.push((
+                k,
+                format!("a person said {:?} is {}; that stands", name(k), said(cur)),
+            )),
+            _ => conflicts.push(format!("{:?} ({} by {by:?})", name(k), said(cur))),
+        }
+    }
+    if !conflicts.is_empty() {
+        return Err(ServiceError::Conflict(format!(
+            "this feedback ({source:?}) contradicts what the round already holds: {}; a label \
+             is final once given, except that a person's (source \"human\") overrides a \
+             derived one",
+            conflicts.join(", ")
+        )));
+    }
+    Ok((learned, ignored))
 }
 
 /// What the handlers share with the writer.
@@ -373,6 +453,7 @@ fn run(
                 Cmd::Feedback {
                     round_id,
                     truth,
+                    source,
                     reply,
                 } => {
                     // Rounds queued before this feedback are committed first: arrival order.
@@ -380,7 +461,7 @@ fn run(
                     let res = if shared.broken.load(Ordering::SeqCst) {
                         Err(broken_error(shared))
                     } else {
-                        feedback(store, shared, &round_id, truth)
+                        feedback(store, shared, &round_id, truth, source)
                     };
                     let _ = reply.send(res);
                 }
@@ -573,6 +654,7 @@ fn feedback(
     shared: &Shared,
     round_id: &str,
     truth: Vec<u8>,
+    source: String,
 ) -> Result<FeedbackDone, ServiceError> {
     let start = Instant::now();
     let unknown = || ServiceError::UnknownRound(round_id.to_string());
@@ -582,27 +664,34 @@ fn feedback(
     }
     let stored = store.round(seq)?.ok_or_else(unknown)?;
     let coalition = stored.round.coalition();
-    if let Some(prev) = store.feedback(seq)? {
-        if prev.truth == truth {
-            return Ok(FeedbackDone {
-                round_id: round_id.to_string(),
-                feedback: prev,
-                coalition,
-                repeated: true,
-            });
-        }
+    let l = truth.len();
+    let events = store.feedback(seq)?;
+    let (merged, sources) = merged_truth(l, &events);
+    let (learned, ignored) = {
         let eng = shared.engine.blocking_read();
-        return Err(ServiceError::Conflict(format!(
-            "round {round_id} was already labelled {:?}; feedback is final per round",
-            eng.ontology().decode(&prev.truth)
-        )));
+        merge_feedback(eng.ontology(), &merged, &sources, &truth, &source)?
+    };
+    if learned.iter().all(|&v| v > 1) {
+        let last = events.last().cloned().ok_or_else(|| {
+            ServiceError::Internal("a feedback that teaches nothing on an unlabelled round".into())
+        })?;
+        return Ok(FeedbackDone {
+            round_id: round_id.to_string(),
+            feedback: last,
+            coalition,
+            repeated: true,
+            merged,
+            sources,
+            learned,
+            ignored,
+        });
     }
     let (outcome, labelled_order) = {
         let eng = shared.engine.blocking_read();
         let o = eng.credit(
             &stored.inference.signals,
             &stored.inference.w_used,
-            &truth,
+            &learned,
             seq,
         );
         (o, eng.labelled())
@@ -611,7 +700,8 @@ fn feedback(
         seq,
         labelled_order,
         rounds_before: shared.rounds.load(Ordering::SeqCst),
-        truth,
+        truth: learned.clone(),
+        source: source.clone(),
         outcome,
     };
     store.insert_feedback(std::slice::from_ref(&fb))?;
@@ -632,10 +722,35 @@ fn feedback(
         publish_gauges(&eng);
     }
     metrics::histogram!("vlmfuse_feedback_duration_seconds").record(start.elapsed().as_secs_f64());
+    metrics::counter!("vlmfuse_feedback_labels_total", "source" => source_metric(&source))
+        .increment(learned.iter().filter(|&&v| v <= 1).count() as u64);
+    let mut merged = merged;
+    let mut sources = sources;
+    for (k, &v) in learned.iter().enumerate() {
+        if v <= 1 {
+            merged[k] = v;
+            sources[k] = Some(source.clone());
+        }
+    }
     Ok(FeedbackDone {
         round_id: round_id.to_string(),
         feedback: fb,
         coalition,
         repeated: false,
+        merged,
+        sources,
+        learned,
+        ignored,
     })
+}
+
+/// The `source` label of the feedback metrics: the three known sources by name, any other
+/// (a caller's own) as `other`, so that callers cannot grow the metric's label set.
+fn source_metric(source: &str) -> &'static str {
+    match source {
+        "human" => "human",
+        "kinematics" => "kinematics",
+        "detector" => "detector",
+        _ => "other",
+    }
 }

@@ -3,6 +3,7 @@
 
 mod concurrency;
 mod errors;
+mod feedback;
 mod hardening;
 mod infer_media;
 mod infer_pipeline;
