@@ -13,8 +13,11 @@ fn names() -> Vec<String> {
     vec!["a".into(), "b".into(), "c".into()]
 }
 
+/// Context, presence, reports and truth of one round.
+type Sample = (Vec<f64>, Vec<bool>, Vec<u8>, Vec<u8>);
+
 /// Random labelled rounds in two context clusters, reporters of different reliability.
-fn rounds(n: u64, l: usize, seed: u64) -> Vec<(Vec<f64>, Vec<bool>, Vec<u8>, Vec<u8>)> {
+fn rounds(n: u64, l: usize, seed: u64) -> Vec<Sample> {
     let mut g = Lcg(seed);
     (0..n)
         .map(|t| {
@@ -69,8 +72,12 @@ fn whole(y: &[u8]) -> Vec<Vec<u8>> {
 /// The first half of the labels, then the rest.
 fn halves(y: &[u8]) -> Vec<Vec<u8>> {
     let h = y.len() / 2;
-    let a = (0..y.len()).map(|k| if k < h { y[k] } else { UNKNOWN }).collect();
-    let b = (0..y.len()).map(|k| if k >= h { y[k] } else { UNKNOWN }).collect();
+    let a = (0..y.len())
+        .map(|k| if k < h { y[k] } else { UNKNOWN })
+        .collect();
+    let b = (0..y.len())
+        .map(|k| if k >= h { y[k] } else { UNKNOWN })
+        .collect();
     vec![a, b]
 }
 
@@ -90,12 +97,14 @@ fn credit_ignores_the_labels_a_feedback_does_not_give() {
         for v in &mut y2[4..] {
             *v ^= 1;
         }
-        let part = |y: &[u8]| -> Vec<u8> {
-            (0..l).map(|k| if k < 4 { y[k] } else { UNKNOWN }).collect()
-        };
+        let part =
+            |y: &[u8]| -> Vec<u8> { (0..l).map(|k| if k < 4 { y[k] } else { UNKNOWN }).collect() };
         let full1 = e.credit(&inf.signals, &inf.w_used, &y1, 1);
         let full2 = e.credit(&inf.signals, &inf.w_used, &y2, 1);
-        assert_ne!(full1.phi, full2.phi, "the unknown labels must matter when known");
+        assert_ne!(
+            full1.phi, full2.phi,
+            "the unknown labels must matter when known"
+        );
         let p1 = e.credit(&inf.signals, &inf.w_used, &part(&y1), 1);
         let p2 = e.credit(&inf.signals, &inf.w_used, &part(&y2), 1);
         assert_eq!(p1, p2);

@@ -1031,9 +1031,8 @@ impl Store {
             .conn
             .transaction_with_behavior(TransactionBehavior::Immediate)?;
         {
-            let mut up = tx.prepare_cached(
-                "UPDATE feedback SET outcome = ?2 WHERE labelled_order = ?1",
-            )?;
+            let mut up =
+                tx.prepare_cached("UPDATE feedback SET outcome = ?2 WHERE labelled_order = ?1")?;
             for (order, o) in &replayed.outcomes {
                 up.execute(params![*order as i64, serde_json::to_string(o)?])?;
             }
@@ -1348,6 +1347,23 @@ impl Store {
             .optional()?;
         Ok(match s {
             Some(s) => Some(serde_json::from_str(&s)?),
+            None => None,
+        })
+    }
+
+    /// The request a round was stored with (its reports, and for `/v1/infer` the clip's
+    /// metadata), if the round exists.
+    pub fn round_request(&self, seq: u64) -> Result<Option<serde_json::Value>, StoreError> {
+        let text: Option<String> = self
+            .conn
+            .query_row(
+                "SELECT request FROM round_detail WHERE seq = ?1",
+                [seq as i64],
+                |r| r.get(0),
+            )
+            .optional()?;
+        Ok(match text {
+            Some(t) => Some(serde_json::from_str(&t)?),
             None => None,
         })
     }

@@ -1,8 +1,8 @@
 //! The `vlmfuse` command line: one binary for the service (`serve`), the paper's evaluation
 //! protocol (`eval`), the benchmarks (`bench`), bulk loading (`import`), the labeler (`label`)
-//! and one reporter on one clip (`describe`).
+//! one reporter on one clip (`describe`) and labels from a vehicle-signal track (`annotate`).
 
-use crate::{bench, config, describe, eval, import, label, serve};
+use crate::{annotate, bench, config, describe, eval, import, label, serve};
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
@@ -33,6 +33,9 @@ pub enum Cmd {
     /// Run one configured reporter on one clip: its answer and labels, and with `--dump` the
     /// in-process model's inputs and first-token logits (to check a checkpoint).
     Describe(describe::DescribeArgs),
+    /// Derive driving labels (brake, stop, turns, merge, ...) from a vehicle-signal track,
+    /// with the evidence for each; `--simulate N` scores the rules on simulated clips.
+    Annotate(annotate::AnnotateArgs),
 }
 
 /// Parses the command line, runs the command, and prints an error with its causes.
@@ -45,6 +48,7 @@ pub fn main() -> ExitCode {
         Cmd::Import(args) => import::run(*args),
         Cmd::Label(args) => label::run(args),
         Cmd::Describe(args) => describe::run(args),
+        Cmd::Annotate(args) => annotate::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

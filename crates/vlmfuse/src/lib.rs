@@ -13,6 +13,7 @@
 //! * [`wire`]: the JSON shapes of the answers;
 //! * [`serve`], [`eval`], [`bench`], [`label`], [`describe`]: the subcommands ([`cli`]).
 
+pub mod annotate;
 pub mod bench;
 pub mod cli;
 pub mod config;

@@ -130,7 +130,7 @@ pub struct FeedbackOut {
     /// Labels whose truth no feedback has given yet.
     pub unknown: Vec<String>,
     /// What this feedback taught: the labels it gave for the first time or overrode, with the
-    /// value each now has. Empty for a repeat.
+    /// value each now has. For a repeat, what the round's latest feedback taught.
     pub learned: Ordered<bool>,
     /// Labels this feedback gave that were not taken (a person's label stands).
     #[serde(skip_serializing_if = "Vec::is_empty")]
@@ -138,6 +138,9 @@ pub struct FeedbackOut {
     /// Who gave the feedback whose credit is shown (this one, or for a repeat the round's
     /// latest).
     pub source: String,
+    /// For a `signals` feedback: what the rules derived, with the evidence.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub derived: Option<vlmfuse_annotate::Annotation>,
     /// Shapley value of each reporter present in the round.
     pub shapley: Ordered<f64>,
     pub shapley_method: &'static str,
@@ -203,6 +206,7 @@ pub fn feedback_out(engine: &Engine, done: &FeedbackDone) -> FeedbackOut {
             })
             .collect(),
         source: done.feedback.source.clone(),
+        derived: done.derived.clone(),
         shapley: members(&o.credit.phi),
         shapley_method: o.credit.method.name(),
         shapley_std_error: se,
@@ -282,6 +286,9 @@ pub struct InferClipOut {
     /// Reporters left out of this round, with why.
     pub failed: Ordered<String>,
     pub clip: ClipOut,
+    /// What the kinematic rules derived from the clip's `signals` track, with the evidence.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub derived: Option<vlmfuse_annotate::Annotation>,
     pub timings_ms: Ordered<f64>,
 }
 

@@ -126,8 +126,8 @@ impl Paper {
                 theta_neg[idx] = an / (an + bn);
             }
             for k in 0..l {
-                prior[k] = (cfg.prior_alpha + pi_pos[k])
-                    / (cfg.prior_alpha + cfg.prior_beta + pi_mass[k]);
+                prior[k] =
+                    (cfg.prior_alpha + pi_pos[k]) / (cfg.prior_alpha + cfg.prior_beta + pi_mass[k]);
             }
         }
         let mut rho = vec![0.0; p * p * l];

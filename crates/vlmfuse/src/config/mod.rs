@@ -13,12 +13,14 @@
 //! Built-in defaults equal `config/default.toml` (a test holds them together), so running with no
 //! file and running with the shipped file behave the same.
 
+mod annotate;
 mod embedder;
 mod labeler;
 mod media;
 mod reporter;
 mod server;
 
+pub use annotate::AnnotateSection;
 pub use embedder::{EmbedderBackend, EmbedderConfig};
 pub use labeler::{
     EmbeddingLabelerConfig, EncoderEngine, GgufLabelerConfig, LabelerConfig, OpenAiLabelerConfig,
@@ -76,6 +78,9 @@ pub struct Config {
     /// Text -> labels for /v1/infer.
     #[arg(skip)]
     pub labeler: LabelerConfig,
+    /// Labels derived from the vehicle's signals (`signals` tracks).
+    #[command(flatten)]
+    pub annotate: AnnotateSection,
 }
 
 fn trimmed(s: &str) -> Result<String, std::convert::Infallible> {
@@ -98,6 +103,7 @@ impl Default for Config {
             embedder: None,
             reporter: Vec::new(),
             labeler: LabelerConfig::default(),
+            annotate: AnnotateSection::default(),
         }
     }
 }
@@ -192,6 +198,7 @@ impl Config {
     /// Refuses what would only fail later, at the first request.
     pub fn validate(&self) -> anyhow::Result<()> {
         self.listen_addr()?;
+        self.annotate.validate()?;
         if self.server.api_key.as_deref().is_some_and(str::is_empty) {
             bail!("api_key is empty; leave it out to disable authentication");
         }

@@ -101,6 +101,8 @@ fn service_status(e: &ServiceError) -> StatusCode {
             StatusCode::UNPROCESSABLE_ENTITY
         }
         S::UnknownRound(_) => StatusCode::NOT_FOUND,
+        S::Signals { .. } => StatusCode::UNPROCESSABLE_ENTITY,
+        S::SignalsTooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
         S::Conflict(_) => StatusCode::CONFLICT,
         S::IdempotencyKeyReused(_) => StatusCode::UNPROCESSABLE_ENTITY,
         S::NotReady { .. } | S::ReportersFailed(_) => StatusCode::SERVICE_UNAVAILABLE,
@@ -120,6 +122,8 @@ fn service_kind(e: &ServiceError) -> &'static str {
         S::TruthNotAccepted(_) => "truth_not_accepted",
         S::TooManyClips(_) => "too_many_clips",
         S::UnknownRound(_) => "unknown_round",
+        S::Signals { .. } => "bad_signals",
+        S::SignalsTooLarge(_) => "signals_too_large",
         S::Conflict(_) => "conflict",
         S::IdempotencyKeyReused(_) => "idempotency_key_reused",
         S::NotReady { .. } => "not_ready",

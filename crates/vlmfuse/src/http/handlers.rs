@@ -50,14 +50,19 @@ pub async fn fuse(
 #[serde(deny_unknown_fields)]
 pub struct FeedbackIn {
     round_id: String,
-    /// The labels that are present.
-    labels: Vec<String>,
+    /// The labels that are present (required unless `signals` gives them).
+    #[serde(default)]
+    labels: Option<Vec<String>>,
     /// The labels whose truth this feedback gives (present or not); absent: all of them.
     #[serde(default)]
     known: Option<Vec<String>>,
     /// Who says so: `human` (the default), `kinematics`, `detector` or a caller's name.
     #[serde(default)]
     source: Option<String>,
+    /// A vehicle-signal track (CSV or JSON lines) to derive the labels from, instead of
+    /// `labels` and `known` (source `kinematics` unless given).
+    #[serde(default)]
+    signals: Option<String>,
 }
 
 /// `POST /v1/feedback`: labels a fused round, wholly or in part; idempotent per label.
@@ -69,6 +74,7 @@ pub async fn feedback(
         labels: body.labels,
         known: body.known,
         source: body.source,
+        signals: body.signals,
     };
     let (out, repeated) = st.service.feedback(body.round_id, given).await?;
     let mut resp = axum::Json(out).into_response();

@@ -57,10 +57,37 @@ async fn infer_inner(State(st): State<AppState>, req: Request) -> Result<Respons
             request_id = Some(read_request_id(field).await.map_err(guard_err)?);
             continue;
         }
+        if field.name() == Some("signals") {
+            let max = st.service.config().annotate.max_bytes;
+            let bytes = read_signals(field, max).await.map_err(guard_err)?;
+            match uploads.last_mut() {
+                Some(Upload { signals: None, .. }) => {
+                    uploads.last_mut().expect("just matched").signals = Some(bytes)
+                }
+                Some(_) => {
+                    return Err(ServiceError::Invalid(
+                        "two \"signals\" parts for one clip: send each clip's track right \
+                         after its \"video\" part"
+                            .into(),
+                    )
+                    .into())
+                }
+                None => {
+                    return Err(ServiceError::Invalid(
+                        "a \"signals\" part before any \"video\" part: send each clip's \
+                         track right after its \"video\" part"
+                            .into(),
+                    )
+                    .into())
+                }
+            }
+            continue;
+        }
         if field.name() != Some("video") {
             return Err(ServiceError::Invalid(format!(
-                "unexpected part {:?}: send each clip as a part named \"video\" (and an \
-                 optional idempotency key as a part named \"request_id\")",
+                "unexpected part {:?}: send each clip as a part named \"video\" (an optional \
+                 vehicle-signal track for it as a part named \"signals\" right after it, and \
+                 an optional idempotency key as a part named \"request_id\")",
                 field.name().unwrap_or("")
             ))
             .into());
@@ -86,6 +113,18 @@ async fn infer_inner(State(st): State<AppState>, req: Request) -> Result<Respons
         .infer(uploads, header_key.as_deref(), request_id.as_deref())
         .await?;
     Ok(super::handlers::answer_response(answer))
+}
+
+/// A `signals` part: a vehicle-signal track, read into memory up to `max` bytes (413 past it).
+async fn read_signals(mut field: Field<'_>, max: u64) -> Result<Vec<u8>, ApiError> {
+    let mut buf = Vec::new();
+    while let Some(chunk) = field.chunk().await? {
+        if (buf.len() + chunk.len()) as u64 > max {
+            return Err(ServiceError::SignalsTooLarge(max).into());
+        }
+        buf.extend_from_slice(&chunk);
+    }
+    Ok(buf)
 }
 
 /// The `request_id` part: a short text (an idempotency key).
@@ -149,6 +188,7 @@ async fn spool(
         bytes,
         upload_ms: stage("upload", start),
         sha256: hash.finalize().into(),
+        signals: None,
     })
 }
 

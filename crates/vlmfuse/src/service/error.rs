@@ -36,6 +36,13 @@ pub enum ServiceError {
     TooManyClips(usize),
     #[error("round {0:?} does not exist")]
     UnknownRound(String),
+    /// A vehicle-signal track the rules cannot trust (`kind` names why: non-monotonic time,
+    /// NaN, out of range, not covering the clip, ...). Nothing is stored.
+    #[error("{message}")]
+    Signals { kind: &'static str, message: String },
+    /// A signal track larger than `[annotate] max_bytes`.
+    #[error("the signals track is larger than {0} bytes ([annotate] max_bytes)")]
+    SignalsTooLarge(u64),
     /// A second feedback for a round, with other labels.
     #[error("{0}")]
     Conflict(String),

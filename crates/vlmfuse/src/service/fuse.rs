@@ -279,6 +279,34 @@ impl Service {
             let eng = self.shared.engine.read().await;
             given.encode(&eng)?
         };
+        self.feedback_with(round_id, truth, source, given.signals.as_deref())
+            .await
+    }
+
+    /// A feedback whose truth is already encoded (the derived labels of a clip's track).
+    pub(crate) async fn feedback_truth(
+        &self,
+        round_id: String,
+        truth: Vec<u8>,
+        source: String,
+    ) -> Result<(FeedbackOut, bool), ServiceError> {
+        self.feedback_with(round_id, truth, source, None).await
+    }
+
+    async fn feedback_with(
+        &self,
+        round_id: String,
+        truth: Vec<u8>,
+        source: String,
+        signals: Option<&str>,
+    ) -> Result<(FeedbackOut, bool), ServiceError> {
+        let derive = match signals {
+            Some(text) => Some(Box::new((
+                super::annotate::parse_track(&self.cfg.annotate, text.as_bytes())?,
+                self.cfg.annotate.clone(),
+            ))),
+            None => None,
+        };
         let (tx, rx) = oneshot::channel();
         // Once sent, the writer finishes the feedback even if this request is dropped (timeout,
         // client gone); a repeat then answers with the committed result.
@@ -286,6 +314,7 @@ impl Service {
             round_id,
             truth,
             source,
+            derive,
             reply: tx,
         })?;
         let done: FeedbackDone = rx.await.map_err(|_| ServiceError::WriterStopped)??;
@@ -298,9 +327,12 @@ impl Service {
 /// (`None`: all) and who gives it (`None`: a person).
 #[derive(Debug, Clone, Default)]
 pub struct FeedbackGiven {
-    pub labels: Vec<String>,
+    /// `None` only with `signals`.
+    pub labels: Option<Vec<String>>,
     pub known: Option<Vec<String>>,
     pub source: Option<String>,
+    /// A vehicle-signal track the labels are derived from instead.
+    pub signals: Option<String>,
 }
 
 /// Longest `source` name accepted.
@@ -312,7 +344,12 @@ impl FeedbackGiven {
     /// an empty `known`, and a source that is empty, long or not `[A-Za-z0-9_.:-]`.
     pub fn encode(&self, eng: &vlmfuse_fusion::Engine) -> Result<(Vec<u8>, String), ServiceError> {
         let bad = |m: String| ServiceError::Invalid(m);
-        let source = self.source.clone().unwrap_or_else(|| "human".into());
+        let default = if self.signals.is_some() {
+            super::annotate::KINEMATICS
+        } else {
+            "human"
+        };
+        let source = self.source.clone().unwrap_or_else(|| default.into());
         if source.is_empty()
             || source.len() > MAX_SOURCE
             || !source
@@ -324,7 +361,25 @@ impl FeedbackGiven {
                  (e.g. \"human\", \"kinematics\", \"detector\"), not {source:?}"
             )));
         }
-        let present = eng.encode_truth(&self.labels)?;
+        if self.signals.is_some() {
+            if self.labels.is_some() || self.known.is_some() {
+                return Err(bad(
+                    "give either \"signals\" (the labels are derived from them) or \"labels\" \
+                     (and \"known\"), not both"
+                        .into(),
+                ));
+            }
+            // Derived by the writer, which knows the round's clip.
+            return Ok((Vec::new(), source));
+        }
+        let Some(labels) = &self.labels else {
+            return Err(bad(
+                "missing field \"labels\" (the labels that are present; or \"signals\", a \
+                 vehicle-signal track to derive them from)"
+                    .into(),
+            ));
+        };
+        let present = eng.encode_truth(labels)?;
         let truth = match &self.known {
             None => present,
             Some(known) => {

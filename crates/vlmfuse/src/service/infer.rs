@@ -21,6 +21,8 @@ pub struct Upload {
     pub upload_ms: f64,
     /// SHA-256 of the clip's bytes: what an idempotency key's request is recognised by.
     pub sha256: [u8; 32],
+    /// The clip's vehicle-signal track (a `signals` part after its `video` part), as sent.
+    pub signals: Option<Vec<u8>>,
 }
 
 /// A clip decoded and embedded, ready for the reporters.
@@ -33,6 +35,8 @@ struct Decoded {
 
 /// A clip that went through every stage up to fusion.
 struct Processed {
+    /// What the rules derived from the clip's signal track.
+    derived: Option<vlmfuse_annotate::Annotation>,
     record: RoundRecord,
     request: Value,
     reporters: Vec<(String, ReporterOut)>,
@@ -127,6 +131,11 @@ impl Service {
                 for u in &uploads {
                     parts.push(u.file_name.as_deref().unwrap_or("").as_bytes());
                     parts.push(&u.sha256);
+                    // A clip with a track is another request than the clip alone.
+                    parts.push(match &u.signals {
+                        Some(s) => s,
+                        None => b"\0no-signals",
+                    });
                 }
                 Some(IdemRequest {
                     key,
@@ -140,9 +149,35 @@ impl Service {
             }
         }
         let batch = uploads.len() > 1;
+        // Tracks first: a bad one is refused before any decoding or model work.
+        let at = |i: usize, e: ServiceError| match e {
+            ServiceError::Signals { kind, message } if batch => ServiceError::Signals {
+                kind,
+                message: format!("clip {i}: {message}"),
+            },
+            e => e,
+        };
+        let mut tracks = Vec::with_capacity(uploads.len());
+        for (i, up) in uploads.iter().enumerate() {
+            tracks.push(match &up.signals {
+                Some(b) => Some(
+                    super::annotate::parse_track(&self.cfg.annotate, b).map_err(|e| at(i, e))?,
+                ),
+                None => None,
+            });
+        }
         let mut decoded = Vec::with_capacity(uploads.len());
-        for up in &uploads {
-            decoded.push(self.decode_and_embed(up).await?);
+        let mut derived = Vec::with_capacity(uploads.len());
+        for (i, (up, track)) in uploads.iter().zip(&tracks).enumerate() {
+            let d = self.decode_and_embed(up).await?;
+            derived.push(match track {
+                Some(t) => Some(
+                    super::annotate::derive(&self.cfg.annotate, t, Some(d.clip.info.duration_s))
+                        .map_err(|e| at(i, e))?,
+                ),
+                None => None,
+            });
+            decoded.push(d);
         }
         // Every reporter sees all the request's clips at once: an in-process model runs them as
         // one batch (one vision pass, one prefill), a remote one concurrently.
@@ -151,9 +186,28 @@ impl Service {
         let runs = vlmfuse_models::run_all_batch(&self.pipeline.reporters, &inputs).await;
         let reporters_ms = stage("reporters", start);
         let mut processed = Vec::with_capacity(uploads.len());
-        for ((up, d), runs) in uploads.iter().zip(decoded).zip(runs) {
-            processed.push(self.label_and_record(up, d, runs, reporters_ms).await?);
+        for (((up, d), runs), derived) in uploads.iter().zip(decoded).zip(runs).zip(derived) {
+            let mut p = self.label_and_record(up, d, runs, reporters_ms).await?;
+            if let Some(a) = &derived {
+                p.request["signals"] = serde_json::to_value(a).unwrap_or_default();
+            }
+            p.derived = derived;
+            processed.push(p);
         }
+        // What the vehicle's signals say, as partial feedback once the rounds are stored.
+        let feedback: Vec<Option<Vec<u8>>> = if self.cfg.annotate.feedback {
+            let eng = self.shared.engine.read().await;
+            processed
+                .iter()
+                .map(|p| {
+                    p.derived
+                        .as_ref()
+                        .and_then(|a| super::annotate::truth_of(eng.ontology(), a))
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
         let records = processed
             .iter_mut()
             .map(|p| (p.record.clone(), std::mem::take(&mut p.request)))
@@ -172,6 +226,7 @@ impl Service {
                         reporters: Ordered(p.reporters),
                         failed: Ordered(p.failed),
                         clip: p.clip,
+                        derived: p.derived,
                         timings_ms: Ordered(timings),
                     }
                 })
@@ -183,12 +238,49 @@ impl Service {
             }
             .unwrap_or_else(|e| json!({"error": format!("serialising: {e}")}))
         });
-        let answer = self
+        let mut answer = self
             .fuse_and_store(records, batch, "/v1/infer", idem, render)
             .await?;
         stage("fuse", fuse_start);
         drop(uploads);
+        if !answer.replayed && feedback.iter().any(Option::is_some) {
+            self.kinematics_feedback(&mut answer.body, batch, feedback)
+                .await;
+        }
         Ok(answer)
+    }
+
+    /// `[annotate] feedback = true`: each stored clip's derived labels go in as partial
+    /// feedback (source `kinematics`), and its answer gains `kinematics_feedback` (the
+    /// feedback's answer, or why it failed: the round is stored either way, and the feedback can
+    /// be sent again on `/v1/feedback`).
+    async fn kinematics_feedback(
+        &self,
+        body: &mut Value,
+        batch: bool,
+        truths: Vec<Option<Vec<u8>>>,
+    ) {
+        for (i, truth) in truths.into_iter().enumerate() {
+            let Some(truth) = truth else { continue };
+            let clip = if batch {
+                &mut body["clips"][i]
+            } else {
+                &mut *body
+            };
+            let Some(round_id) = clip["round_id"].as_str().map(str::to_string) else {
+                continue;
+            };
+            let res = self
+                .feedback_truth(round_id, truth, super::annotate::KINEMATICS.into())
+                .await;
+            clip["kinematics_feedback"] = match res {
+                Ok((out, _)) => serde_json::to_value(out).unwrap_or_default(),
+                Err(e) => {
+                    tracing::warn!(error = %e, "kinematic feedback failed");
+                    json!({"error": e.to_string()})
+                }
+            };
+        }
     }
 
     /// Decode and embed one clip.
@@ -336,6 +428,7 @@ impl Service {
             "labeler": p.labeler_name,
         });
         Ok(Processed {
+            derived: None,
             record: RoundRecord {
                 id: up.file_name.clone(),
                 context: context.into_iter().map(f64::from).collect(),

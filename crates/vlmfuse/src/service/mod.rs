@@ -9,6 +9,7 @@
 //! the write lock. The database (vlmfuse-store) is the truth the engine is
 //! rebuilt from on start.
 
+pub mod annotate;
 mod error;
 mod fuse;
 mod infer;

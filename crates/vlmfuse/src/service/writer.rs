@@ -43,9 +43,15 @@ pub enum Cmd {
         round_id: String,
         truth: Vec<u8>,
         source: String,
+        /// A parsed signal track to derive `truth` from (it is empty then), with `[annotate]`:
+        /// derived here, where the round's clip (its duration) is known.
+        derive: Option<Derive>,
         reply: oneshot::Sender<Result<FeedbackDone, ServiceError>>,
     },
 }
+
+/// A signal track and the `[annotate]` section it is read under.
+pub type Derive = Box<(vlmfuse_annotate::Track, crate::config::AnnotateSection)>;
 
 /// The idempotency key of an insert, and how to write the answer it is stored with.
 pub struct Idem {
@@ -100,6 +106,8 @@ pub struct FeedbackDone {
     pub learned: Vec<u8>,
     /// Labels this feedback gave that were not taken, with why (a person's label stands).
     pub ignored: Vec<(usize, String)>,
+    /// The annotation the labels were derived from (a `signals` feedback).
+    pub derived: Option<vlmfuse_annotate::Annotation>,
 }
 
 /// The source whose labels override every other's.
@@ -121,6 +129,10 @@ fn merged_truth(l: usize, events: &[StoredFeedback]) -> (Vec<u8>, Vec<Option<Str
     (y, src)
 }
 
+/// What a feedback teaches (0/1 per label it learns, `UNKNOWN` elsewhere) and the labels it
+/// gave that were not taken, with why.
+pub type Merged = (Vec<u8>, Vec<(usize, String)>);
+
 /// What a new feedback teaches against the round's merged truth (docs/METHOD.md, "Partial
 /// feedback"): a label not known yet is learned; the same value again is nothing new; another
 /// value is learned when a person overrides a derived source, ignored when a derived source
@@ -131,7 +143,7 @@ pub fn merge_feedback(
     sources: &[Option<String>],
     truth: &[u8],
     source: &str,
-) -> Result<(Vec<u8>, Vec<(usize, String)>), ServiceError> {
+) -> Result<Merged, ServiceError> {
     let mut learned = vec![vlmfuse_fusion::UNKNOWN; truth.len()];
     let mut ignored = Vec::new();
     let mut conflicts = Vec::new();
@@ -454,6 +466,7 @@ fn run(
                     round_id,
                     truth,
                     source,
+                    derive,
                     reply,
                 } => {
                     // Rounds queued before this feedback are committed first: arrival order.
@@ -461,7 +474,7 @@ fn run(
                     let res = if shared.broken.load(Ordering::SeqCst) {
                         Err(broken_error(shared))
                     } else {
-                        feedback(store, shared, &round_id, truth, source)
+                        feedback(store, shared, &round_id, truth, source, derive)
                     };
                     let _ = reply.send(res);
                 }
@@ -655,6 +668,7 @@ fn feedback(
     round_id: &str,
     truth: Vec<u8>,
     source: String,
+    derive: Option<Derive>,
 ) -> Result<FeedbackDone, ServiceError> {
     let start = Instant::now();
     let unknown = || ServiceError::UnknownRound(round_id.to_string());
@@ -663,6 +677,33 @@ fn feedback(
         return Err(unknown());
     }
     let stored = store.round(seq)?.ok_or_else(unknown)?;
+    let (truth, derived) = match derive {
+        None => (truth, None),
+        Some(d) => {
+            let (track, cfg) = *d;
+            // The clip's duration, for a round /v1/infer stored (a /v1/fuse round has none).
+            let duration = store
+                .round_request(seq)?
+                .and_then(|r| r["clip"]["duration_s"].as_f64());
+            let a = super::annotate::derive(&cfg, &track, duration)?;
+            let eng = shared.engine.blocking_read();
+            let Some(t) = super::annotate::truth_of(eng.ontology(), &a) else {
+                let why: Vec<String> = a
+                    .undecided
+                    .iter()
+                    .map(|u| format!("{}: {}", u.label, u.reason))
+                    .collect();
+                return Err(ServiceError::Signals {
+                    kind: "undecided",
+                    message: format!(
+                        "signals: the track decides none of the labels ({})",
+                        why.join("; ")
+                    ),
+                });
+            };
+            (t, Some(a))
+        }
+    };
     let coalition = stored.round.coalition();
     let l = truth.len();
     let events = store.feedback(seq)?;
@@ -675,15 +716,17 @@ fn feedback(
         let last = events.last().cloned().ok_or_else(|| {
             ServiceError::Internal("a feedback that teaches nothing on an unlabelled round".into())
         })?;
+        // The answer the round's latest feedback got (a plain repeat reads as its first answer).
         return Ok(FeedbackDone {
             round_id: round_id.to_string(),
+            learned: last.truth.clone(),
             feedback: last,
             coalition,
             repeated: true,
             merged,
             sources,
-            learned,
             ignored,
+            derived,
         });
     }
     let (outcome, labelled_order) = {
@@ -741,6 +784,7 @@ fn feedback(
         sources,
         learned,
         ignored,
+        derived,
     })
 }
 

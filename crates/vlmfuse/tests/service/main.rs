@@ -8,4 +8,5 @@ mod hardening;
 mod infer_media;
 mod infer_pipeline;
 mod label;
+mod signals;
 mod support;
