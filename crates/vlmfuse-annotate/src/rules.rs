@@ -494,7 +494,9 @@ impl<'a> Ctx<'a> {
                 ev.push(Evidence {
                     signal: "brake".to_string(),
                     t_s: self.t[h.start],
-                    value: h.level + c.brake_pedal,
+                    // In pedal units, floored at 0: where the deceleration term binds, the
+                    // joint level can sit below any pedal position.
+                    value: (h.level + c.brake_pedal).max(0.0),
                     threshold: c.brake_pedal,
                     margin: m,
                     note: format!(
@@ -620,7 +622,7 @@ impl<'a> Ctx<'a> {
                 ev.push(Evidence {
                     signal: "throttle".to_string(),
                     t_s: self.t[h.start],
-                    value: h.level + c.throttle,
+                    value: (h.level + c.throttle).max(0.0),
                     threshold: c.throttle,
                     margin: m,
                     note: format!(

@@ -35,6 +35,13 @@ pub struct AnnotateArgs {
     /// Seed of the simulation.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Sensor noise of the simulation, as a multiple of the default (speed 0.05 m/s,
+    /// acceleration 0.15 m/s², steering 1°, yaw rate 0.5 °/s, pedals 0.01).
+    #[arg(long, default_value_t = 1.0, requires = "simulate")]
+    pub noise: f64,
+    /// Share of the simulated tracks' cells left empty (dropped samples).
+    #[arg(long, default_value_t = 0.02, requires = "simulate")]
+    pub missing: f64,
     /// TOML configuration whose `[annotate]` is used, as `vlmfuse serve --config`.
     #[arg(long, env = "VLMFUSE_CONFIG")]
     pub config: Option<PathBuf>,
@@ -73,7 +80,23 @@ pub fn run(args: AnnotateArgs) -> anyhow::Result<()> {
         if n == 0 {
             bail!("--simulate needs at least 1 clip per manoeuvre");
         }
-        let report = sim::evaluate(n, args.seed, &section.rules);
+        if !(args.noise.is_finite() && args.noise >= 0.0) {
+            bail!("--noise must be a multiple >= 0, got {}", args.noise);
+        }
+        if !(0.0..1.0).contains(&args.missing) {
+            bail!("--missing must be a share in [0, 1), got {}", args.missing);
+        }
+        let base = sim::SimConfig::realistic();
+        let simcfg = sim::SimConfig {
+            speed_sd_mps: base.speed_sd_mps * args.noise,
+            accel_sd_mps2: base.accel_sd_mps2 * args.noise,
+            steering_sd_deg: base.steering_sd_deg * args.noise,
+            yaw_sd_dps: base.yaw_sd_dps * args.noise,
+            pedal_sd: base.pedal_sd * args.noise,
+            missing_share: args.missing,
+            ..base
+        };
+        let report = sim::evaluate_with(n, args.seed, &section.rules, &simcfg);
         if args.json {
             println!("{}", serde_json::to_string_pretty(&report)?);
         } else {

@@ -2,6 +2,7 @@
 //! of `vlmfuse eval`, `vlmfuse label` and `vlmfuse describe`. Everything else runs in-process
 //! (the `service` tests).
 
+mod annotate_cli;
 mod describe_cli;
 mod eval_cli;
 mod label_cli;

@@ -52,7 +52,10 @@ fn snapshot(pid: u32) -> Snap {
 /// a file's path...): what a failed descriptor check shows.
 fn fd_kinds(pid: u32) -> std::collections::BTreeMap<String, usize> {
     let mut out = std::collections::BTreeMap::new();
-    for e in std::fs::read_dir(format!("/proc/{pid}/fd")).unwrap().flatten() {
+    for e in std::fs::read_dir(format!("/proc/{pid}/fd"))
+        .unwrap()
+        .flatten()
+    {
         let target = std::fs::read_link(e.path())
             .map(|p| p.display().to_string())
             .unwrap_or_default();
@@ -91,8 +94,7 @@ fn sockets_to(pid: u32, port: u16) -> usize {
         .unwrap()
         .flatten()
         .filter(|e| {
-            std::fs::read_link(e.path())
-                .is_ok_and(|p| inodes.contains(&p.display().to_string()))
+            std::fs::read_link(e.path()).is_ok_and(|p| inodes.contains(&p.display().to_string()))
         })
         .count()
 }
