@@ -35,6 +35,50 @@ pub fn hide_labels(
     (out, keep)
 }
 
+/// Like [`hide_labels`], but the `keep` history rounds that keep their truth are the review
+/// queue's first `keep` ([`crate::review`]), ranked on what is known without any truth: the
+/// unsupervised posteriors `q` (one row per round, e.g. [`dawid_skene`]'s), the reporters'
+/// disagreement and the novelty of each context.
+pub fn pick_review(
+    rounds: &[ParsedRound],
+    n_hist: usize,
+    keep: Option<usize>,
+    q: &[Vec<f64>],
+) -> (Vec<ParsedRound>, usize) {
+    let mut out = rounds.to_vec();
+    let labelled: Vec<usize> = (0..n_hist.min(rounds.len()))
+        .filter(|&t| rounds[t].truth.is_some())
+        .collect();
+    let Some(keep) = keep else {
+        return (out, labelled.len());
+    };
+    if keep >= labelled.len() {
+        return (out, labelled.len());
+    }
+    let l = q.first().map_or(0, Vec::len);
+    let cands: Vec<crate::review::Candidate> = labelled
+        .iter()
+        .map(|&t| crate::review::Candidate {
+            seq: t as u64,
+            context: rounds[t].round.context.clone(),
+            present: rounds[t].round.present.clone(),
+            reports: rounds[t].round.reports.clone(),
+            q: q[t].clone(),
+            known: vec![false; l],
+        })
+        .collect();
+    let picked: std::collections::HashSet<u64> = crate::review::rank(&cands, &[], l, keep)
+        .into_iter()
+        .map(|p| p.seq)
+        .collect();
+    for &t in &labelled {
+        if !picked.contains(&(t as u64)) {
+            out[t].truth = None;
+        }
+    }
+    (out, picked.len())
+}
+
 /// Binary-relevance Dawid–Skene (Dawid & Skene 1979), fitted without any truth on every round of
 /// the file: per reporter and label a 2x2 confusion matrix and per label a class prior, EM from
 /// the majority-vote initialisation, as crowd-kit's `BinaryRelevance(DawidSkene)` does. Context
@@ -189,6 +233,33 @@ mod tests {
         let (all, kept) = hide_labels(&rounds, 70, None, 5);
         assert_eq!(kept, 63);
         assert!(all.iter().zip(&rounds).all(|(a, b)| a.truth == b.truth));
+    }
+
+    #[test]
+    fn the_review_pick_keeps_the_disputed_rounds_and_every_test_label() {
+        // Rounds 0..70 are history; those with t % 7 == 0 are disputed (the two reporters
+        // disagree) and uncertain (q = 0.5), the rest unanimous and sure.
+        let rounds: Vec<ParsedRound> = (0..100)
+            .map(|t| {
+                let reports = if t % 7 == 0 { vec![1, 0] } else { vec![1, 1] };
+                let mut r = round(vec![true, true], reports, Some(vec![1]));
+                r.round.context = vec![1.0, t as f64 / 100.0];
+                let n = r.round.context.iter().map(|v| v * v).sum::<f64>().sqrt();
+                r.round.context.iter_mut().for_each(|v| *v /= n);
+                r
+            })
+            .collect();
+        let q: Vec<Vec<f64>> = (0..100)
+            .map(|t| vec![if t % 7 == 0 { 0.5 } else { 0.99 }])
+            .collect();
+        let (h, kept) = pick_review(&rounds, 70, Some(10), &q);
+        assert_eq!(kept, 10);
+        let picked: Vec<usize> = (0..70).filter(|&t| h[t].truth.is_some()).collect();
+        assert_eq!(picked, (0..70).filter(|t| t % 7 == 0).collect::<Vec<_>>());
+        assert!(h[70..].iter().all(|r| r.truth.is_some()));
+        let (all, kept) = pick_review(&rounds, 70, None, &q);
+        assert_eq!(kept, 70);
+        assert!(all.iter().all(|r| r.truth.is_some()));
     }
 
     #[test]

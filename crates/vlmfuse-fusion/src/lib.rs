@@ -16,6 +16,7 @@ pub mod metrics;
 pub mod ontology;
 pub mod replay;
 pub mod reputation;
+pub mod review;
 pub mod signals;
 mod sorted_map;
 pub mod threshold;

@@ -279,6 +279,7 @@ fn eval_bench(args: &BenchArgs) -> anyhow::Result<()> {
         method: None,
         labelled: None,
         seed: 0,
+        pick: eval::Pick::Random,
         curve: vec![],
         quiet: true,
     };

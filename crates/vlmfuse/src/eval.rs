@@ -113,6 +113,12 @@ pub struct EvalArgs {
     /// Seed of the `--labelled` / `--curve` choice of labelled rounds.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// How `--labelled` / `--curve` choose the history rounds that keep their truth: `random`
+    /// (uniformly, by `--seed`) or `review` (the review queue of `GET /v1/review`: the most
+    /// uncertain, disputed and novel rounds first, ranked without any truth on unsupervised
+    /// Dawid–Skene posteriors).
+    #[arg(long, value_enum, default_value_t = Pick::Random)]
+    pub pick: Pick,
     /// Learning curve: for each N (e.g. `0,10,50,200,all`) and each method, one row of the
     /// table, plus majority vote, unsupervised Dawid–Skene and each reporter alone; with
     /// `--plots`, the curve and a reliability diagram per method.
@@ -121,6 +127,32 @@ pub struct EvalArgs {
     /// Hide the progress bar.
     #[arg(long)]
     pub quiet: bool,
+}
+
+/// `--pick`: which history rounds keep their truth.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Pick {
+    Random,
+    Review,
+}
+
+/// The rounds with all but `keep` history truths hidden, chosen as `--pick` says.
+fn choose_labels(
+    rounds: &[ParsedRound],
+    n_hist: usize,
+    keep: Option<usize>,
+    args: &EvalArgs,
+    reporters: usize,
+    l: usize,
+) -> (Vec<ParsedRound>, usize) {
+    match args.pick {
+        Pick::Random => hide_labels(rounds, n_hist, keep, args.seed),
+        Pick::Review => {
+            let q = dawid_skene(rounds, reporters, l, DS_ITERS, DS_SMOOTHING);
+            vlmfuse_fusion::curve::pick_review(rounds, n_hist, keep, &q)
+        }
+    }
 }
 
 fn parse_split(s: &str) -> Result<f64, String> {
@@ -253,11 +285,13 @@ pub fn evaluate(
     let ablations = ablation_list(&args.ablations)?;
     let (engine, all_rounds) = prepare(cfg, ontology, records)?;
     let n_hist = history_len(all_rounds.len(), args.split);
-    let (rounds, labelled) = hide_labels(
+    let (rounds, labelled) = choose_labels(
         &all_rounds,
         n_hist,
         args.labelled.and_then(|k| k.limit()),
-        args.seed,
+        args,
+        engine.reporters().len(),
+        ontology.len(),
     );
     let opts = ReplayOptions {
         split: args.split,
@@ -589,7 +623,14 @@ pub fn evaluate_curve(
     let mut points = Vec::new();
     let mut done = 0u64;
     for &keep in &args.curve {
-        let (rounds, labelled) = hide_labels(&all_rounds, n_hist, keep.limit(), args.seed);
+        let (rounds, labelled) = choose_labels(
+            &all_rounds,
+            n_hist,
+            keep.limit(),
+            args,
+            engine.reporters().len(),
+            l,
+        );
         for method in CURVE_METHODS {
             bar.set_message(format!("{method}, N = {keep}"));
             let c = FusionConfig {
