@@ -285,12 +285,6 @@ impl Bank {
         }
     }
 
-    /// The position of the entry for round `seq`, if the bank holds it (a linear search from
-    /// the newest: only a second feedback on a round needs it).
-    pub fn position(&self, seq: u64) -> Option<usize> {
-        self.seqs.iter().rposition(|&s| s == seq)
-    }
-
     /// A later feedback on entry `pos`: every label `truth` knows (0 or 1) takes that value,
     /// the others keep theirs. The whole-bank counts follow.
     pub fn merge_truth(&mut self, pos: usize, truth: &[u8]) {

@@ -7,6 +7,22 @@ use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
+/// The history rounds with a truth and how many of them keep it, or `Err(count)` when all of
+/// them do (`keep` is `None` or not below their count): the part both choices share.
+fn to_hide(
+    rounds: &[ParsedRound],
+    n_hist: usize,
+    keep: Option<usize>,
+) -> Result<(Vec<usize>, usize), usize> {
+    let labelled: Vec<usize> = (0..n_hist.min(rounds.len()))
+        .filter(|&t| rounds[t].truth.is_some())
+        .collect();
+    match keep {
+        Some(k) if k < labelled.len() => Ok((labelled, k)),
+        _ => Err(labelled.len()),
+    }
+}
+
 /// Keeps the truth of `keep` history rounds (all of them for `None`), chosen uniformly among the
 /// history rounds that have one by `seed`, and hides the others'. Test rounds (after the first
 /// `n_hist`) keep their truth: they are scored on it. Returns the rounds and how many history
@@ -18,15 +34,10 @@ pub fn hide_labels(
     seed: u64,
 ) -> (Vec<ParsedRound>, usize) {
     let mut out = rounds.to_vec();
-    let labelled: Vec<usize> = (0..n_hist.min(rounds.len()))
-        .filter(|&t| rounds[t].truth.is_some())
-        .collect();
-    let Some(keep) = keep else {
-        return (out, labelled.len());
+    let (labelled, keep) = match to_hide(rounds, n_hist, keep) {
+        Ok(v) => v,
+        Err(all) => return (out, all),
     };
-    if keep >= labelled.len() {
-        return (out, labelled.len());
-    }
     let mut order = labelled.clone();
     order.shuffle(&mut ChaCha8Rng::seed_from_u64(seed));
     for &t in &order[keep..] {
@@ -46,15 +57,10 @@ pub fn pick_review(
     q: &[Vec<f64>],
 ) -> (Vec<ParsedRound>, usize) {
     let mut out = rounds.to_vec();
-    let labelled: Vec<usize> = (0..n_hist.min(rounds.len()))
-        .filter(|&t| rounds[t].truth.is_some())
-        .collect();
-    let Some(keep) = keep else {
-        return (out, labelled.len());
+    let (labelled, keep) = match to_hide(rounds, n_hist, keep) {
+        Ok(v) => v,
+        Err(all) => return (out, all),
     };
-    if keep >= labelled.len() {
-        return (out, labelled.len());
-    }
     let l = q.first().map_or(0, Vec::len);
     let cands: Vec<crate::review::Candidate> = labelled
         .iter()

@@ -14,6 +14,14 @@ pub struct Paper {
     bank: Bank,
     corr: CorrWindow,
     threshold: ThresholdFitter,
+    /// Bank position by round `seq`, for the first `indexed` entries: a later (partial)
+    /// feedback finds its round's entry in O(1) instead of scanning the bank on every feedback
+    /// (which made a replay quadratic). Derived from the bank, so not serialised: a snapshot
+    /// read back rebuilds it at its first feedback.
+    #[serde(skip)]
+    by_seq: std::collections::HashMap<u64, usize>,
+    #[serde(skip)]
+    indexed: usize,
 }
 
 impl Paper {
@@ -22,6 +30,8 @@ impl Paper {
             bank: Bank::new(n, l),
             corr: CorrWindow::new(n, l, cfg.corr_window),
             threshold: ThresholdFitter::new(cfg, l),
+            by_seq: std::collections::HashMap::new(),
+            indexed: 0,
         }
     }
 
@@ -168,12 +178,18 @@ impl Paper {
     /// entry (the labels an override replaced stay in them until they slide out).
     pub fn apply(&mut self, lr: &LabelledRound) {
         let r = &lr.round;
-        match self.bank.position(lr.seq) {
-            Some(pos) => self.bank.merge_truth(pos, &lr.truth),
-            None => self
-                .bank
-                .push(lr.seq, &r.context, &r.present, &r.reports, &lr.truth),
+        for pos in self.indexed..self.bank.len() {
+            self.by_seq.insert(self.bank.seq(pos), pos);
         }
+        match self.by_seq.get(&lr.seq) {
+            Some(&pos) => self.bank.merge_truth(pos, &lr.truth),
+            None => {
+                self.by_seq.insert(lr.seq, self.bank.len());
+                self.bank
+                    .push(lr.seq, &r.context, &r.present, &r.reports, &lr.truth)
+            }
+        }
+        self.indexed = self.bank.len();
         self.corr.push(&r.present, &r.reports, &lr.truth);
         self.threshold.push(&lr.q, &lr.truth);
     }
