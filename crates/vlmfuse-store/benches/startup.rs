@@ -86,6 +86,7 @@ fn main() {
                 inference: inf,
                 request: serde_json::json!({ "reports": rec.reports }),
                 created_ms: 0,
+                thumbnails: Vec::new(),
             });
         }
         store.insert_rounds(seq, &rounds).unwrap();

@@ -181,6 +181,8 @@ pub struct NewRound {
     /// and clip metadata. Stored verbatim; never read back by the engine.
     pub request: serde_json::Value,
     pub created_ms: i64,
+    /// Frame thumbnails for the operator page (none for `/v1/fuse` rounds).
+    pub thumbnails: Vec<browse::Thumbnail>,
 }
 
 /// A stored round, read back for feedback.
@@ -403,6 +405,15 @@ CREATE TABLE IF NOT EXISTS feedback (
     outcome        TEXT NOT NULL    -- vlmfuse_fusion::FeedbackOutcome as JSON
 );
 CREATE INDEX IF NOT EXISTS feedback_seq ON feedback (seq);
+-- Small JPEG thumbnails of a /v1/infer round's frames, for the operator page (/ui); never read by
+-- the engine. Added beside schema 2 (a database without it gains it on open).
+CREATE TABLE IF NOT EXISTS thumbnails (
+    seq  INTEGER NOT NULL REFERENCES rounds(seq),
+    idx  INTEGER NOT NULL,
+    t_s  REAL NOT NULL,
+    jpeg BLOB NOT NULL,
+    PRIMARY KEY (seq, idx)
+);
 -- Idempotency keys of /v1/fuse and /v1/infer: the answer a retry with the same key gets.
 -- Written in the transaction that stores the rounds, so a request that timed out after it was
 -- queued still leaves its answer for the retry; rows older than the configured TTL are pruned.
@@ -1159,6 +1170,7 @@ impl Store {
             "DELETE FROM round_detail WHERE seq >= ?1",
             [to.rounds as i64],
         )?;
+        tx.execute("DELETE FROM thumbnails WHERE seq >= ?1", [to.rounds as i64])?;
         tx.execute("DELETE FROM rounds WHERE seq >= ?1", [to.rounds as i64])?;
         if to.labelled == 0 {
             tx.execute("DELETE FROM state", [])?;
@@ -1238,6 +1250,7 @@ fn write_rounds(
                    fingerprint = excluded.fingerprint, response = excluded.response,
                    created_ms = excluded.created_ms",
         )?;
+        browse::write_thumbnails(tx, first_seq, rounds)?;
         for k in keys {
             key.execute(params![
                 k.key,
@@ -1507,6 +1520,7 @@ impl Store {
     }
 }
 
+pub mod browse;
 pub mod snapshot;
 
 #[cfg(test)]

@@ -85,6 +85,7 @@ fn play(engine: &mut Engine, store: &mut Store, from: u64, to: u64) {
                     inference: inf.clone(),
                     request: serde_json::json!({}),
                     created_ms: 0,
+                    thumbnails: Vec::new(),
                 }],
             )
             .unwrap();
@@ -210,6 +211,7 @@ fn another_dimension_is_refused_in_the_transaction() {
                 inference: inf,
                 request: serde_json::Value::Null,
                 created_ms: 0,
+                thumbnails: Vec::new(),
             }],
         )
         .unwrap_err();
@@ -331,6 +333,7 @@ fn idempotency_keys_commit_with_their_rounds_and_expire() {
         inference: inf,
         request: serde_json::json!({}),
         created_ms: 0,
+        thumbnails: Vec::new(),
     };
     let key = IdempotencyRecord {
         key: "k-1".into(),

@@ -78,6 +78,7 @@ fn prefill(dir: &std::path::Path, bank: u64) {
             inference: inf,
             request: serde_json::Value::Null,
             created_ms: 0,
+            thumbnails: Vec::new(),
         });
     }
     store.insert_rounds(0, &rounds).unwrap();

@@ -194,6 +194,7 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
                     inference: stored,
                     request: serde_json::json!({}),
                     created_ms: vlmfuse_store::timestamp_ms(),
+                    thumbnails: Vec::new(),
                 }],
             )?;
             in_store += ts.elapsed();

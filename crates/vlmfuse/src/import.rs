@@ -352,6 +352,7 @@ fn ingest(
                         "reports": rec.reports,
                     }),
                     created_ms: vlmfuse_store::timestamp_ms(),
+                    thumbnails: Vec::new(),
                 });
                 seq += 1;
                 done.rounds += 1;

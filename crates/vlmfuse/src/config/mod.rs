@@ -19,6 +19,7 @@ mod labeler;
 mod media;
 mod reporter;
 mod server;
+mod ui;
 
 pub use annotate::AnnotateSection;
 pub use embedder::{EmbedderBackend, EmbedderConfig};
@@ -28,6 +29,7 @@ pub use labeler::{
 pub use media::MediaConfig;
 pub use reporter::{ReporterBackend, ReporterEntry};
 pub use server::{Limits, ServerConfig, DEFAULT_DATA_DIR, DEFAULT_LISTEN};
+pub use ui::UiSection;
 
 use anyhow::{bail, ensure, Context};
 use clap::{ArgMatches, Args, FromArgMatches};
@@ -81,6 +83,9 @@ pub struct Config {
     /// Labels derived from the vehicle's signals (`signals` tracks).
     #[command(flatten)]
     pub annotate: AnnotateSection,
+    /// The operator page (`/ui`).
+    #[command(flatten)]
+    pub ui: UiSection,
 }
 
 fn trimmed(s: &str) -> Result<String, std::convert::Infallible> {
@@ -104,6 +109,7 @@ impl Default for Config {
             reporter: Vec::new(),
             labeler: LabelerConfig::default(),
             annotate: AnnotateSection::default(),
+            ui: UiSection::default(),
         }
     }
 }
@@ -199,6 +205,7 @@ impl Config {
     pub fn validate(&self) -> anyhow::Result<()> {
         self.listen_addr()?;
         self.annotate.validate()?;
+        self.ui.validate()?;
         if self.server.api_key.as_deref().is_some_and(str::is_empty) {
             bail!("api_key is empty; leave it out to disable authentication");
         }

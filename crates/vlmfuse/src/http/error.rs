@@ -100,7 +100,7 @@ fn service_status(e: &ServiceError) -> StatusCode {
         S::Invalid(_) | S::TruthNotAccepted(_) | S::TooManyClips(_) => {
             StatusCode::UNPROCESSABLE_ENTITY
         }
-        S::UnknownRound(_) => StatusCode::NOT_FOUND,
+        S::UnknownRound(_) | S::NotFound(_) => StatusCode::NOT_FOUND,
         S::Signals { .. } => StatusCode::UNPROCESSABLE_ENTITY,
         S::SignalsTooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
         S::Conflict(_) => StatusCode::CONFLICT,
@@ -122,6 +122,7 @@ fn service_kind(e: &ServiceError) -> &'static str {
         S::TruthNotAccepted(_) => "truth_not_accepted",
         S::TooManyClips(_) => "too_many_clips",
         S::UnknownRound(_) => "unknown_round",
+        S::NotFound(_) => "not_found",
         S::Signals { .. } => "bad_signals",
         S::SignalsTooLarge(_) => "signals_too_large",
         S::Conflict(_) => "conflict",

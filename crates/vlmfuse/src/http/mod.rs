@@ -6,6 +6,7 @@
 pub mod error;
 mod handlers;
 mod infer;
+pub mod ui;
 
 pub use error::ApiError;
 pub use handlers::OPENAPI;
@@ -17,6 +18,7 @@ use axum::middleware::{from_fn, from_fn_with_state, Next};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post, MethodRouter};
 use axum::Router;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::sync::Semaphore;
@@ -26,12 +28,25 @@ use tokio::sync::Semaphore;
 pub struct AppState {
     pub service: Arc<Service>,
     limiter: Arc<Semaphore>,
+    counts: Arc<EdgeCounters>,
+}
+
+/// Responses by class since start, for the operator page's health panel.
+#[derive(Default)]
+struct EdgeCounters {
+    client: AtomicU64,
+    server: AtomicU64,
+    overload: AtomicU64,
 }
 
 impl AppState {
     pub fn new(service: Arc<Service>) -> Self {
         let limiter = Arc::new(Semaphore::new(service.config().limits.concurrency_limit));
-        Self { service, limiter }
+        Self {
+            service,
+            limiter,
+            counts: Arc::default(),
+        }
     }
 }
 
@@ -43,8 +58,12 @@ pub enum Access {
     /// Reads under the concurrency limit.
     Limited,
     /// Writes, and routes that run models: bearer token (when configured), then the
-    /// concurrency limit.
+    /// concurrency limit. The operator page's session cookie counts as the token when the
+    /// request says it comes from the page (`X-Vlmfuse-Ui: 1`; http/ui.rs says why).
     Write,
+    /// The operator page's reads: the bearer token or the page's session cookie (when a key is
+    /// configured), then the concurrency limit.
+    Operator,
 }
 
 /// How large a body a route takes.
@@ -107,6 +126,23 @@ pub fn routes() -> Vec<RouteDef> {
         r("get", "/readyz", Open, get(h::readyz)),
         r("get", "/metrics", Open, get(h::metrics)),
         r("get", "/openapi.yaml", Open, get(h::openapi)),
+        // The operator page (docs/UI.md). The page itself decides between the page and the login
+        // form, so it is open; its data is behind the key.
+        r("get", "/", Open, get(ui::root)),
+        r("get", "/ui", Open, get(ui::index)),
+        r("get", "/ui/app.js", Open, get(ui::app_js)),
+        r("get", "/ui/app.css", Open, get(ui::app_css)),
+        r("post", "/ui/login", Limited, post(ui::login)),
+        r("post", "/ui/logout", Open, post(ui::logout)),
+        r("get", "/ui/api/summary", Operator, get(ui::summary)),
+        r("get", "/ui/api/rounds", Operator, get(ui::rounds)),
+        r("get", "/ui/api/rounds/{round_id}", Operator, get(ui::round)),
+        r(
+            "get",
+            "/ui/api/rounds/{round_id}/frames/{index}",
+            Operator,
+            get(ui::frame),
+        ),
     ]
 }
 
@@ -124,6 +160,9 @@ pub fn app(state: AppState) -> Router {
         if def.access == Access::Write {
             handler = handler.route_layer(from_fn_with_state(state.clone(), auth));
         }
+        if def.access == Access::Operator {
+            handler = handler.route_layer(from_fn_with_state(state.clone(), auth_operator));
+        }
         let secs = match def.timeout {
             TimeoutClass::Request => cfg.limits.request_timeout_s,
             TimeoutClass::Clip => cfg.media.request_timeout_s,
@@ -137,7 +176,7 @@ pub fn app(state: AppState) -> Router {
     }
     app.fallback(handlers::not_found)
         .method_not_allowed_fallback(handlers::method_not_allowed)
-        .layer(from_fn(track))
+        .layer(from_fn_with_state(state.clone(), track))
         .layer(from_fn(close_on_refusal))
         .layer(from_fn_with_state(state.clone(), scope_metrics))
         .with_state(state)
@@ -177,6 +216,7 @@ async fn scope_metrics(State(st): State<AppState>, req: Request, next: Next) -> 
 async fn limit(State(st): State<AppState>, req: Request, next: Next) -> Result<Response, ApiError> {
     let Ok(permit) = st.limiter.clone().try_acquire_owned() else {
         metrics::counter!("vlmfuse_overload_total").increment(1);
+        st.counts.overload.fetch_add(1, Ordering::Relaxed);
         return Err(ApiError::Overloaded(
             st.service.config().limits.concurrency_limit,
         ));
@@ -187,7 +227,21 @@ async fn limit(State(st): State<AppState>, req: Request, next: Next) -> Result<R
 }
 
 async fn auth(State(st): State<AppState>, req: Request, next: Next) -> Result<Response, ApiError> {
-    if st.service.config().server.api_key.is_some() && !has_token(&st, req.headers()) {
+    if st.service.config().server.api_key.is_some()
+        && !has_token(&st, req.headers())
+        && !ui::page_write(&st, req.headers())
+    {
+        return Err(ApiError::Unauthorized);
+    }
+    Ok(next.run(req).await)
+}
+
+async fn auth_operator(
+    State(st): State<AppState>,
+    req: Request,
+    next: Next,
+) -> Result<Response, ApiError> {
+    if !ui::operator(&st, req.headers()) {
         return Err(ApiError::Unauthorized);
     }
     Ok(next.run(req).await)
@@ -218,7 +272,7 @@ fn bearer_token(header: &str) -> Option<&str> {
 /// Compares in time that depends only on the key's length, never on where or whether the
 /// given token differs (no early exit on a length mismatch either), so response time reveals
 /// neither a matching prefix nor the key's length from the token's.
-fn constant_time_eq(given: &[u8], key: &[u8]) -> bool {
+pub(crate) fn constant_time_eq(given: &[u8], key: &[u8]) -> bool {
     let mut diff = u8::from(given.len() != key.len());
     for (i, &k) in key.iter().enumerate() {
         diff |= given.get(i).copied().unwrap_or(0) ^ k;
@@ -253,7 +307,7 @@ fn method_label(m: &axum::http::Method) -> &'static str {
 
 /// Per-route request count and latency, labelled by the route pattern (not the raw path, which
 /// would make one series per round id).
-async fn track(req: Request, next: Next) -> Response {
+async fn track(State(st): State<AppState>, req: Request, next: Next) -> Response {
     let route = req
         .extensions()
         .get::<MatchedPath>()
@@ -262,6 +316,11 @@ async fn track(req: Request, next: Next) -> Response {
     let method = method_label(req.method()).to_string();
     let start = Instant::now();
     let resp = next.run(req).await;
+    if resp.status().is_client_error() {
+        st.counts.client.fetch_add(1, Ordering::Relaxed);
+    } else if resp.status().is_server_error() {
+        st.counts.server.fetch_add(1, Ordering::Relaxed);
+    }
     let status = resp.status().as_u16().to_string();
     metrics::histogram!("vlmfuse_http_request_duration_seconds", "route" => route.clone(), "method" => method.clone())
         .record(start.elapsed().as_secs_f64());
@@ -311,7 +370,7 @@ mod tests {
                     r.path
                 );
             }
-            if r.access == Access::Write {
+            if matches!(r.access, Access::Write | Access::Operator) {
                 assert!(has("401"), "{} {} lacks 401", r.method, r.path);
             }
         }

@@ -36,6 +36,9 @@ pub enum ServiceError {
     TooManyClips(usize),
     #[error("round {0:?} does not exist")]
     UnknownRound(String),
+    /// Something else a read names that does not exist (a round's thumbnail).
+    #[error("{0} does not exist")]
+    NotFound(String),
     /// A vehicle-signal track the rules cannot trust (`kind` names why: non-monotonic time,
     /// NaN, out of range, not covering the clip, ...). Nothing is stored.
     #[error("{message}")]

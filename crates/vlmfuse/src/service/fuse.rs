@@ -8,6 +8,7 @@ use sha2::{Digest, Sha256};
 use std::time::Instant;
 use tokio::sync::oneshot;
 use vlmfuse_fusion::{FusionError, RoundRecord};
+use vlmfuse_store::browse::Thumbnail;
 use vlmfuse_store::{round_id, NewRound};
 
 /// The answer of a storing route (`/v1/fuse`, `/v1/infer`): the JSON body, and whether it
@@ -106,7 +107,7 @@ impl Service {
             .into_iter()
             .map(|rec| {
                 let request = serde_json::json!({ "id": rec.id, "reports": rec.reports });
-                (rec, request)
+                (rec, request, Vec::new())
             })
             .collect();
         let render: Render = Box::new(move |mut rounds| {
@@ -127,7 +128,7 @@ impl Service {
     /// with the round. All or nothing.
     pub(super) async fn fuse_and_store(
         &self,
-        records: Vec<(RoundRecord, Value)>,
+        records: Vec<(RoundRecord, Value, Vec<Thumbnail>)>,
         batch: bool,
         route: &'static str,
         idem: Option<IdemRequest>,
@@ -147,7 +148,7 @@ impl Service {
                 }
                 let mut dim = eng.dim();
                 let mut parsed = Vec::with_capacity(records.len());
-                for (idx, (rec, request)) in records.into_iter().enumerate() {
+                for (idx, (rec, request, thumbs)) in records.into_iter().enumerate() {
                     let at = |e: FusionError| -> ServiceError {
                         if batch {
                             ServiceError::InBatch {
@@ -168,21 +169,27 @@ impl Service {
                     }
                     let (round, _) = eng.parse(&rec).map_err(at)?;
                     dim.get_or_insert(round.context.len());
-                    parsed.push((rec, request, round));
+                    parsed.push((rec, request, thumbs, round));
                 }
                 let infer_start = Instant::now();
                 let mut outs = Vec::with_capacity(parsed.len());
                 let mut new_rounds = Vec::with_capacity(parsed.len());
                 let created_ms = vlmfuse_store::timestamp_ms();
-                for (rec, request, round) in parsed {
+                for (rec, mut request, thumbnails, round) in parsed {
                     let inf = eng.infer(&round);
                     // The round id is set once the writer has numbered the round.
-                    outs.push(fuse_out(&eng, 0, rec.id.clone(), &inf));
+                    let out = fuse_out(&eng, 0, rec.id.clone(), &inf);
+                    // Which predictor served it, for the operator page's history.
+                    if let Some(obj) = request.as_object_mut() {
+                        obj.insert("decision".into(), out.decision.into());
+                    }
+                    outs.push(out);
                     new_rounds.push(NewRound {
                         round,
                         inference: inf,
                         request,
                         created_ms,
+                        thumbnails,
                     });
                 }
                 metrics::histogram!("vlmfuse_fusion_duration_seconds")

@@ -31,6 +31,7 @@ struct Decoded {
     context: Vec<f32>,
     clip: ClipOut,
     timings: Vec<(String, f64)>,
+    thumbnails: Vec<vlmfuse_store::browse::Thumbnail>,
 }
 
 /// A clip that went through every stage up to fusion.
@@ -43,6 +44,7 @@ struct Processed {
     failed: Vec<(String, String)>,
     clip: ClipOut,
     timings: Vec<(String, f64)>,
+    thumbnails: Vec<vlmfuse_store::browse::Thumbnail>,
 }
 
 /// Labels a round's answers the way `labeler_eval` scores them: in one `label_batch` call (the
@@ -210,7 +212,13 @@ impl Service {
         };
         let records = processed
             .iter_mut()
-            .map(|p| (p.record.clone(), std::mem::take(&mut p.request)))
+            .map(|p| {
+                (
+                    p.record.clone(),
+                    std::mem::take(&mut p.request),
+                    std::mem::take(&mut p.thumbnails),
+                )
+            })
             .collect();
         let fuse_start = Instant::now();
         let render: Render = Box::new(move |fused| {
@@ -324,6 +332,15 @@ impl Service {
             .await
             .map_err(ServiceError::Embedder)?;
         timings.push(("embed".into(), stage("embed", start)));
+        let (count, width) = (self.cfg.ui.thumbnails, self.cfg.ui.thumbnail_width);
+        let thumbnails = if count == 0 {
+            Vec::new()
+        } else {
+            let frames = frames.clone();
+            tokio::task::spawn_blocking(move || super::thumbs::make(&frames, count, width))
+                .await
+                .unwrap_or_default()
+        };
 
         let input = ClipInput {
             path,
@@ -341,6 +358,7 @@ impl Service {
             context,
             clip,
             timings,
+            thumbnails,
         })
     }
 
@@ -360,6 +378,7 @@ impl Service {
             context,
             clip,
             mut timings,
+            thumbnails,
             ..
         } = d;
         timings.push(("reporters".into(), reporters_ms));
@@ -368,6 +387,8 @@ impl Service {
         let mut failed = p.unloaded_reporters.clone();
         let mut answered = Vec::new();
         for (name, res) in runs {
+            self.shared
+                .record_reporter(&name, res.as_ref().map(|o| o.latency_ms).map_err(|_| ()));
             match res {
                 Ok(out) => answered.push((name, out)),
                 Err(e) => {
@@ -440,6 +461,7 @@ impl Service {
             failed,
             clip,
             timings,
+            thumbnails,
         })
     }
 }

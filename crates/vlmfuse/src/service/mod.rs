@@ -10,14 +10,18 @@
 //! rebuilt from on start.
 
 pub mod annotate;
+mod browse;
+pub mod dashboard;
 mod error;
 mod fuse;
 mod infer;
 mod label;
 pub mod pipeline;
 mod readiness;
+mod thumbs;
 pub mod writer;
 
+pub use browse::{EdgeCounts, MAX_PAGE};
 pub use error::ServiceError;
 pub use fuse::{fingerprint, idempotency_key, Answer, FeedbackGiven, IdemRequest};
 
@@ -116,6 +120,8 @@ pub struct Service {
     metrics: Metrics,
     hooks: TestHooks,
     health: Arc<readiness::Health>,
+    /// The operator page's read-only connection to the store, opened on first use.
+    reader: Arc<Mutex<Option<Store>>>,
     /// Aborts the reporter probes when the service is dropped.
     _probes: Option<readiness::ProbeTask>,
 }
@@ -231,11 +237,28 @@ impl Service {
             "state rebuilt from the database"
         );
         metrics.scope(|| writer::publish_gauges(&engine));
+        let mut dash = dashboard::Dashboard::new(
+            cfg.ui.clone(),
+            engine.reporters().len(),
+            engine.ontology().labels().len(),
+        );
+        // The page's numbers are an aid: a store that cannot give them leaves the page empty
+        // until new events arrive, never stops the start.
+        let seed_start = Instant::now();
+        if let Err(e) = dash.seed(&store, loaded.labelled) {
+            tracing::warn!(error = %e, "operator page: could not read the latest events");
+        }
+        tracing::debug!(
+            secs = seed_start.elapsed().as_secs_f64(),
+            "operator page seeded from the store"
+        );
         let shared = Arc::new(Shared {
+            reporter_names: engine.reporters().to_vec(),
             engine: tokio::sync::RwLock::new(engine),
             rounds: AtomicU64::new(loaded.next_seq),
             broken: AtomicBool::new(false),
             broken_reason: Mutex::new(None),
+            dashboard: Mutex::new(dash),
         });
 
         let start = Instant::now();
@@ -302,6 +325,7 @@ impl Service {
                 metrics,
                 hooks: TestHooks::default(),
                 health,
+                reader: Arc::new(Mutex::new(None)),
                 _probes: probes,
             },
             writer,

@@ -18,7 +18,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 use tokio::sync::oneshot;
 use tokio::sync::RwLock;
-use vlmfuse_fusion::{Engine, FusionError, LabelledRound};
+use vlmfuse_fusion::{Engine, FusionError, LabelledRound, Round};
 use vlmfuse_store::{parse_round_id, IdempotencyRecord, NewRound, Store, StoredFeedback};
 
 /// Most commands taken off the queue into one group.
@@ -115,7 +115,7 @@ pub const HUMAN: &str = "human";
 
 /// The round's truth as its stored events leave it: per label the value and who gave it, the
 /// later event winning (an override comes after what it overrides).
-fn merged_truth(l: usize, events: &[StoredFeedback]) -> (Vec<u8>, Vec<Option<String>>) {
+pub(crate) fn merged_truth(l: usize, events: &[StoredFeedback]) -> (Vec<u8>, Vec<Option<String>>) {
     let mut y = vec![vlmfuse_fusion::UNKNOWN; l];
     let mut src: Vec<Option<String>> = vec![None; l];
     for ev in events {
@@ -197,9 +197,47 @@ pub struct Shared {
     /// refuses writes and `/readyz` says why.
     pub broken: AtomicBool,
     pub broken_reason: Mutex<Option<String>>,
+    /// The operator page's aggregates, updated here after each commit (std's lock: held for
+    /// microseconds, never across an await).
+    pub dashboard: Mutex<super::dashboard::Dashboard>,
+    /// Reporter names in configured order (the dashboard's indices).
+    pub reporter_names: Vec<String>,
 }
 
 impl Shared {
+    /// One reporter's run on a clip: its latency (ms) or a failure, for the page and
+    /// `vlmfuse_reporter_latency_seconds`.
+    pub fn record_reporter(&self, name: &str, result: Result<f64, ()>) {
+        if let Ok(ms) = result {
+            metrics::histogram!("vlmfuse_reporter_latency_seconds", "reporter" => name.to_string())
+                .record(ms / 1e3);
+        }
+        if let Some(i) = self.reporter_names.iter().position(|n| n == name) {
+            if let Ok(mut d) = self.dashboard.lock() {
+                d.on_reporter(i, result);
+            }
+        }
+    }
+
+    /// The rounds just committed, for the page's windows and the per-predictor and agreement
+    /// metrics.
+    fn dashboard_rounds(&self, rounds: &[NewRound]) {
+        let Ok(mut d) = self.dashboard.lock() else {
+            return;
+        };
+        for r in rounds {
+            let decision = r.request.get("decision").and_then(|v| v.as_str());
+            metrics::counter!("vlmfuse_decisions_total", "predictor" => decision.unwrap_or("unknown").to_string())
+                .increment(1);
+            d.on_round(&r.round, &r.inference, decision);
+        }
+        for (name, a) in self.reporter_names.iter().zip(d.agreement()) {
+            if let Some(a) = a {
+                metrics::gauge!("vlmfuse_reporter_agreement", "reporter" => name.clone()).set(a);
+            }
+        }
+    }
+
     /// Why writes are refused (empty while they are not).
     pub fn broken_reason(&self) -> String {
         self.broken_reason
@@ -636,6 +674,7 @@ fn flush_inserts(
                 .rounds
                 .store(first_seq + all.len() as u64, Ordering::SeqCst);
             metrics::counter!("vlmfuse_rounds_stored_total").increment(all.len() as u64);
+            shared.dashboard_rounds(&all);
             for (pos, reply) in followers {
                 let res = match &bodies[pos] {
                     Some(b) => Ok(Inserted::Replay(b.clone())),
@@ -749,6 +788,12 @@ fn feedback(
     };
     store.insert_feedback(std::slice::from_ref(&fb))?;
     // Committed: from here the database holds the feedback, so the engine must follow.
+    let round_for_page = Round {
+        context: Vec::new(),
+        present: stored.round.present.clone(),
+        reports: stored.round.reports.clone(),
+    };
+    let q_served = stored.inference.q.clone();
     {
         let mut eng = shared.engine.blocking_write();
         let lr = LabelledRound {
@@ -763,6 +808,17 @@ fn feedback(
             ));
         }
         publish_gauges(&eng);
+    }
+    if let Ok(mut d) = shared.dashboard.lock() {
+        d.on_feedback(
+            fb.labelled_order + 1,
+            round_id,
+            &round_for_page,
+            &fb.truth,
+            &q_served,
+            &fb.outcome.phi,
+            &fb.outcome.w_after,
+        );
     }
     metrics::histogram!("vlmfuse_feedback_duration_seconds").record(start.elapsed().as_secs_f64());
     metrics::counter!("vlmfuse_feedback_labels_total", "source" => source_metric(&source))

@@ -12,3 +12,4 @@ mod shutdown;
 mod slowloris;
 mod soak;
 mod support;
+mod ui_browser;
