@@ -251,7 +251,55 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
             rss_bytes() as f64 / 1e6
         );
         let _ = std::io::stdout().flush();
+        drop(store);
+        ui_cost(&data, &cfg, done.labelled, rep.next_seq + args.rounds as u64)?;
     }
+    Ok(())
+}
+
+/// What the operator page (`/ui`) costs over a data directory of this size: the start's
+/// seeding of its aggregates, one summary's panels, and the store reads of the rounds pages
+/// (newest, and from the middle of the history) and of one round's page. Each should stay flat
+/// as the store grows: bounded windows and key ranges, never a scan.
+fn ui_cost(data: &std::path::Path, cfg: &crate::Config, labelled: u64, rounds: u64) -> anyhow::Result<()> {
+    use crate::service::dashboard::Dashboard;
+    let reader = Store::open_read_only(data)?;
+    let mut dash = Dashboard::new(cfg.ui.clone(), cfg.reporters.len(), cfg.ontology.labels().len());
+    let t = Instant::now();
+    dash.seed(&reader, labelled)?;
+    let seed_ms = t.elapsed().as_secs_f64() * 1e3;
+    let time = |f: &mut dyn FnMut() -> anyhow::Result<()>| -> anyhow::Result<f64> {
+        let mut v = Vec::with_capacity(20);
+        for _ in 0..20 {
+            let t = Instant::now();
+            f()?;
+            v.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+        v.sort_by(f64::total_cmp);
+        Ok(v[v.len() / 2])
+    };
+    let summary_ms = time(&mut || {
+        std::hint::black_box(dash.panels(&cfg.reporters));
+        Ok(())
+    })?;
+    let newest_ms = time(&mut || {
+        std::hint::black_box(reader.recent_rounds(None, 20)?);
+        Ok(())
+    })?;
+    let middle_ms = time(&mut || {
+        std::hint::black_box(reader.recent_rounds(Some(rounds / 2), 20)?);
+        Ok(())
+    })?;
+    let round_ms = time(&mut || {
+        let seq = rounds / 3;
+        std::hint::black_box((reader.round_row(seq)?, reader.feedback(seq)?, reader.thumbnail_index(seq)?));
+        Ok(())
+    })?;
+    println!(
+        "{rounds:>9} rounds, operator page: start-up seeding {seed_ms:.0} ms; per request (median of 20): \
+         summary panels {summary_ms:.2} ms, rounds page newest {newest_ms:.2} ms, from the middle \
+         {middle_ms:.2} ms, a round's page {round_ms:.2} ms"
+    );
     Ok(())
 }
 

@@ -10,3 +10,4 @@ mod infer_pipeline;
 mod label;
 mod signals;
 mod support;
+mod ui;

@@ -209,12 +209,12 @@
           cell(name, "previous", d.previous, fmt(d.previous, 3)),
           cell(name, "drop", d.drop, fmt(d.drop, 3)),
           h("td", { "data-reporter": name, "data-field": "alarm", "data-value": String(!!d.alarm) },
-            d.alarm ? h("span", { class: "alarm", title: "mean credit dropped by more than the threshold" }, "alarm") : dmap.has(name) ? h("span", { class: "okay" }, "ok") : none()));
+            d.alarm ? h("span", { class: "alarm", title: "mean credit share dropped by more than the threshold" }, "alarm") : dmap.has(name) ? h("span", { class: "okay" }, "ok") : none()));
       });
       $("reputation-table").tBodies[0].replaceChildren(...rows);
       const dr = sm.drift || {};
       $("drift-note").textContent = isNum(dr.window)
-        ? `Drift: mean credit over the latest ${dr.window} labelled rounds (recent) against the ${dr.window} before (previous); an alarm is raised when the drop exceeds ${dr.threshold}.`
+        ? `Drift: mean credit share over the latest ${dr.window} labelled rounds (recent) against the ${dr.window} before (previous); an alarm is raised when the drop exceeds ${dr.threshold}.`
         : "";
     }
     setReady("panel-reputations");
@@ -381,6 +381,9 @@
         h("td", null, swatch(colour(p, i)), p),
         h("td", { class: "num", "data-field": "count", "data-value": String(n) }, String(n)),
         h("td", { class: "num" }, total ? `${Math.round((100 * n) / total)}%` : "–"))) : [h("tr", null, h("td", { colspan: 3 }, none("no decisions yet")))]));
+      const ag = sv.agreement || {};
+      $("serving-agreement").replaceChildren(...Object.keys(ag).map((n) => h("span", { class: "key", "data-reporter": n, "data-field": "agreement", "data-value": String(ag[n]) },
+        swatch(colorOf(n)), `${n} ${fmt(ag[n], 2)}`)));
       const served = sv.labels || {};
       const ids = labels.length ? labels : Object.keys(served);
       $("serving-labels").replaceChildren(...ids.map((id) => {
@@ -409,9 +412,12 @@
     const cell = (name, field, v, text, cls) => h("td", { class: cls || "num", "data-reporter": name, "data-field": field, "data-value": v === undefined ? "null" : String(v) }, text);
     $("health-reporters").tBodies[0].replaceChildren(...(he.reporters || []).map((r) => {
       const l = r.latency_ms || {};
-      return h("tr", { class: r.ready ? null : "not-ready" },
+      return h("tr", { class: r.ready || r.configured === false ? null : "not-ready" },
         h("th", { scope: "row" }, swatch(colorOf(r.name)), r.name),
-        cell(r.name, "ready", !!r.ready, [h("span", { class: r.ready ? "dot ok" : "dot bad", "aria-hidden": "true" }), r.ready ? "ready" : "not ready"], "ready-cell"),
+        r.configured === false
+          // Named in `reporters` but without a [[reporter]] section: it reports through /v1/fuse only.
+          ? cell(r.name, "ready", "fuse-only", [h("span", { class: "dot", "aria-hidden": "true" }), "reports via /v1/fuse"], "ready-cell")
+          : cell(r.name, "ready", !!r.ready, [h("span", { class: r.ready ? "dot ok" : "dot bad", "aria-hidden": "true" }), r.ready ? "ready" : "not ready"], "ready-cell"),
         cell(r.name, "p50", l.p50, fmtMs(l.p50)),
         cell(r.name, "p95", l.p95, fmtMs(l.p95)),
         cell(r.name, "p99", l.p99, fmtMs(l.p99)),
@@ -542,7 +548,11 @@
       rv.touched.add(cb.value);
       cb.parentElement.classList.toggle("changed", cb.checked !== (cb.dataset.default === "true"));
     });
-    form.querySelector("#feedback-reset").addEventListener("click", () => { rv.touched.clear(); if (rv.data) applyDefaults(rv.data); });
+    form.querySelector("#feedback-reset").addEventListener("click", () => {
+      for (const cb of form.querySelectorAll('input[name="label"]')) cb.checked = cb.dataset.default === "true";
+      rv.touched.clear();
+      if (rv.data) applyDefaults(rv.data);
+    });
     body.replaceChildren(
       h("dl", { class: "facts-grid", id: "round-facts" }),
       h("h3", null, "Fused labels"), h("div", { id: "round-labels" }),
@@ -562,6 +572,9 @@
   const labelIdsOf = (d) => (summary && summary.labels && summary.labels.length ? summary.labels.map((l) => l.id) : Object.keys(d.posteriors || {}));
   function applyDefaults(d) {
     for (const cb of $("feedback-checks").querySelectorAll('input[name="label"]')) {
+      // A box that differs from what the page last set was changed by the operator (also when
+      // set from a script, which fires no change event): keep it.
+      if (cb.dataset.default !== undefined && String(cb.checked) !== cb.dataset.default) rv.touched.add(cb.value);
       const def = defaultOf(d, cb.value);
       cb.dataset.default = String(def);
       if (!rv.touched.has(cb.value)) cb.checked = def;
@@ -683,7 +696,8 @@
     rv.sending = true;
     btn.disabled = true;
     out.hidden = false;
-    out.dataset.status = "pending";
+    delete out.dataset.status; // data-status appears only with the answer: ok or error
+    out.classList.add("pending");
     out.textContent = "sending…";
     try {
       const r = await api("/v1/feedback", {
@@ -701,6 +715,8 @@
       if (rv.id === id) {
         out.dataset.status = "ok";
         out.textContent = parts.join("; ");
+        // What was sent is the truth now: the boxes are no longer the operator's changes.
+        for (const cb of form.querySelectorAll('input[name="label"]')) cb.dataset.default = String(cb.checked);
         rv.touched.clear();
       }
       memo.rounds = null;
@@ -713,6 +729,7 @@
         out.textContent = e.message;
       }
     } finally {
+      out.classList.remove("pending");
       rv.sending = false;
       btn.disabled = false;
     }
