@@ -252,7 +252,12 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
         );
         let _ = std::io::stdout().flush();
         drop(store);
-        ui_cost(&data, &cfg, done.labelled, rep.next_seq + args.rounds as u64)?;
+        ui_cost(
+            &data,
+            &cfg,
+            done.labelled,
+            rep.next_seq + args.rounds as u64,
+        )?;
     }
     Ok(())
 }
@@ -261,10 +266,19 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
 /// seeding of its aggregates, one summary's panels, and the store reads of the rounds pages
 /// (newest, and from the middle of the history) and of one round's page. Each should stay flat
 /// as the store grows: bounded windows and key ranges, never a scan.
-fn ui_cost(data: &std::path::Path, cfg: &crate::Config, labelled: u64, rounds: u64) -> anyhow::Result<()> {
+fn ui_cost(
+    data: &std::path::Path,
+    cfg: &crate::Config,
+    labelled: u64,
+    rounds: u64,
+) -> anyhow::Result<()> {
     use crate::service::dashboard::Dashboard;
-    let reader = Store::open_read_only(data)?;
-    let mut dash = Dashboard::new(cfg.ui.clone(), cfg.reporters.len(), cfg.ontology.labels().len());
+    let reader = vlmfuse_store::Store::open_read_only(data)?;
+    let mut dash = Dashboard::new(
+        cfg.ui.clone(),
+        cfg.reporters.len(),
+        cfg.ontology.labels().len(),
+    );
     let t = Instant::now();
     dash.seed(&reader, labelled)?;
     let seed_ms = t.elapsed().as_secs_f64() * 1e3;
@@ -292,7 +306,11 @@ fn ui_cost(data: &std::path::Path, cfg: &crate::Config, labelled: u64, rounds: u
     })?;
     let round_ms = time(&mut || {
         let seq = rounds / 3;
-        std::hint::black_box((reader.round_row(seq)?, reader.feedback(seq)?, reader.thumbnail_index(seq)?));
+        std::hint::black_box((
+            reader.round_row(seq)?,
+            reader.feedback(seq)?,
+            reader.thumbnail_index(seq)?,
+        ));
         Ok(())
     })?;
     println!(

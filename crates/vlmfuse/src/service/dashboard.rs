@@ -280,7 +280,7 @@ impl Dashboard {
             round_id: round_id.to_string(),
             w: w_after.to_vec(),
         };
-        if (labelled.saturating_sub(1)) % self.stride == 0 {
+        if labelled.saturating_sub(1).is_multiple_of(self.stride) {
             self.points.push(point.clone());
             if self.points.len() > self.cfg.history_points {
                 // Keep every other point: the chart stays evenly spaced over the whole history.
@@ -450,7 +450,7 @@ impl Dashboard {
         self.latest = points.last().cloned();
         if points
             .last()
-            .is_some_and(|p| (p.labelled - 1) % stride != 0)
+            .is_some_and(|p| !(p.labelled - 1).is_multiple_of(stride))
         {
             points.pop();
         }

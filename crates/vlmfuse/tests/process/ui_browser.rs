@@ -106,7 +106,7 @@ fn round(t: usize, dim: usize, labels: &[String]) -> (Value, Vec<String>) {
     let truth: Vec<String> = labels
         .iter()
         .enumerate()
-        .filter(|(k, _)| (t * 7 + k * 3) % 5 == 0)
+        .filter(|(k, _)| (t * 7 + k * 3).is_multiple_of(5))
         .map(|(_, l)| l.clone())
         .collect();
     let flipped: Vec<String> = labels
@@ -407,8 +407,7 @@ fn the_operator_page_shows_the_state_and_sends_feedback() {
     assert_eq!(r.status().as_u16(), 401, "the cookie alone does not write");
 
     // 4. Logging out brings the form back.
-    tab.evaluate(&format!("location.hash = '#/'"), false)
-        .unwrap();
+    tab.evaluate("location.hash = '#/'", false).unwrap();
     tab.find_element("form[action=\"/ui/logout\"] button")
         .unwrap()
         .click()

@@ -11,7 +11,7 @@ use vlmfuse::Config;
 const KEY: &str = "page-key-9";
 
 fn round(t: usize) -> Value {
-    let truth_b = t % 3 == 0;
+    let truth_b = t.is_multiple_of(3);
     let ctx: Vec<f64> = (0..4).map(|i| ((t * 5 + i * 3) % 7) as f64 + 0.5).collect();
     let good: Vec<&str> = if truth_b { vec!["brake"] } else { vec![] };
     let bad: Vec<&str> = if truth_b { vec![] } else { vec!["stop"] };
@@ -20,7 +20,7 @@ fn round(t: usize) -> Value {
 }
 
 fn truth(t: usize) -> Vec<&'static str> {
-    if t % 3 == 0 {
+    if t.is_multiple_of(3) {
         vec!["brake"]
     } else {
         vec![]
