@@ -414,3 +414,27 @@ async fn metrics_gain_decisions_and_agreement() {
     let v: f64 = agree.rsplit(' ').next().unwrap().parse().unwrap();
     assert!((0.0..=1.0).contains(&v), "{agree}");
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn the_panels_work_under_the_paper_method_too() {
+    let tmp = tempfile::tempdir().unwrap();
+    let mut cfg = keyed();
+    cfg.fusion.method = vlmfuse_fusion::Method::Paper;
+    let srv = TestApp::start(tmp.path(), cfg).await;
+    fill(&srv, 12).await;
+    let s = bearer_get(&srv, "/ui/api/summary").await.json();
+    assert_eq!(s["state"]["method"], json!("paper"));
+    assert_eq!(s["state"], srv.state().await);
+    assert_eq!(
+        s["reputation_history"]["points"].as_array().unwrap().len(),
+        12
+    );
+    assert_eq!(s["serving"]["decisions"], json!({"model": 12}));
+    assert_eq!(s["reliability"]["overall"]["rounds"], json!(12));
+    assert!(
+        s["reliability"]["recent"]["tpr"][0][0].is_number(),
+        "the paper method's own estimates"
+    );
+    let r = bearer_get(&srv, "/ui/api/rounds/r-00000000").await.json();
+    assert_eq!(r["method"], json!("paper"));
+}
