@@ -287,6 +287,12 @@ impl Engine {
     pub fn serving_vote(&self) -> bool {
         self.method.serving_vote(&self.ctx())
     }
+
+    /// The scores the vote fallback decides on (`adaptive`); `None` under `paper`, which always
+    /// serves its model.
+    pub fn gate_scores(&self) -> Option<crate::method::adaptive::GateScores> {
+        self.method.gate_scores()
+    }
     pub fn ontology(&self) -> &Ontology {
         &self.ontology
     }

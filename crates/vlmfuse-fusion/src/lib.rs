@@ -27,7 +27,9 @@ pub use engine::{
     RoundRecord, ENGINE_LAYOUT, UNKNOWN,
 };
 pub use error::FusionError;
-pub use method::adaptive::{AdaptiveConfig, Guardrail, Reputation, Scan, SoftTruth, WeightNorm};
+pub use method::adaptive::{
+    AdaptiveConfig, GateScores, Guardrail, PredictorScore, Reputation, Scan, SoftTruth, WeightNorm,
+};
 pub use ontology::{Label, Ontology};
 /// docs/PAPER-METHOD.md §5's multiplicative update, [`reputation::multiplicative`].
 pub use reputation::{fixed_share, multiplicative as reputation_update};

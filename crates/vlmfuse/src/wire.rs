@@ -237,6 +237,19 @@ pub struct StateOut {
     /// `[fusion.adaptive] pool_max`); absent under `paper`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub pool: Option<PoolOut>,
+    /// Which predictor serves every label now, and (under `adaptive`) the scores its vote
+    /// fallback decides on.
+    pub serving: ServingOut,
+}
+
+#[derive(Serialize)]
+pub struct ServingOut {
+    /// `model` or `majority_vote` (the same as each response's `decision`).
+    pub predictor: &'static str,
+    /// `adaptive` only: the model's and the vote's Hamming errors and micro-F1 over the
+    /// labelled rounds; the vote serves until the model has fewer errors and no lower F1.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub scores: Option<vlmfuse_fusion::GateScores>,
 }
 
 #[derive(Serialize)]
@@ -338,6 +351,14 @@ pub fn state_out(eng: &Engine, rounds: u64) -> StateOut {
         }),
         rounds,
         dim: eng.dim(),
+        serving: ServingOut {
+            predictor: if eng.serving_vote() {
+                "majority_vote"
+            } else {
+                "model"
+            },
+            scores: eng.gate_scores(),
+        },
     }
 }
 

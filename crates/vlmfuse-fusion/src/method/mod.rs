@@ -70,6 +70,14 @@ impl MethodState {
         }
     }
 
+    /// `adaptive`'s gate: the model's and the vote's scores. `None` under `paper`.
+    pub fn gate_scores(&self) -> Option<adaptive::GateScores> {
+        match self {
+            MethodState::Paper(_) => None,
+            MethodState::Adaptive(a) => Some(a.gate_scores()),
+        }
+    }
+
     pub fn serving_vote(&self, cx: &Ctx) -> bool {
         match self {
             MethodState::Paper(_) => false,

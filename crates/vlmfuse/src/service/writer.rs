@@ -265,6 +265,17 @@ pub fn publish_gauges(engine: &Engine) {
         metrics::gauge!("vlmfuse_pool_entries", "kind" => "labelled").set(labelled as f64);
         metrics::gauge!("vlmfuse_pool_entries", "kind" => "unlabelled").set(unlabelled as f64);
     }
+    // Which predictor serves (1) and, under `adaptive`, the scores that decide it.
+    let vote = engine.serving_vote();
+    metrics::gauge!("vlmfuse_serving", "predictor" => "model").set(f64::from(u8::from(!vote)));
+    metrics::gauge!("vlmfuse_serving", "predictor" => "majority_vote")
+        .set(f64::from(u8::from(vote)));
+    if let Some(g) = engine.gate_scores() {
+        for (p, s) in [("model", g.model), ("majority_vote", g.vote)] {
+            metrics::gauge!("vlmfuse_predictor_errors", "predictor" => p).set(s.errors as f64);
+            metrics::gauge!("vlmfuse_predictor_micro_f1", "predictor" => p).set(s.micro_f1);
+        }
+    }
 }
 
 /// How long idempotency keys are kept, and when they were last pruned.

@@ -413,6 +413,50 @@ async fn metrics_gain_decisions_and_agreement() {
         .unwrap_or_else(|| panic!("no agreement gauge:\n{m}"));
     let v: f64 = agree.rsplit(' ').next().unwrap().parse().unwrap();
     assert!((0.0..=1.0).contains(&v), "{agree}");
+    // Who serves, and the scores that decide it: the vote, with no labelled round yet.
+    let serving = |p: &str| {
+        m.lines()
+            .find(|l| {
+                l.starts_with("vlmfuse_serving{") && l.contains(&format!("predictor=\"{p}\""))
+            })
+            .and_then(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+    };
+    assert_eq!(serving("majority_vote"), Some(1.0), "{m}");
+    assert_eq!(serving("model"), Some(0.0), "{m}");
+    let st = srv.state().await;
+    assert_eq!(st["serving"]["predictor"], json!("majority_vote"));
+    assert_eq!(st["serving"]["scores"]["model"]["errors"], json!(0));
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn the_state_says_who_serves_and_on_what_scores() {
+    let tmp = tempfile::tempdir().unwrap();
+    let srv = TestApp::start(tmp.path(), keyed()).await;
+    fill(&srv, 30).await;
+    let st = srv.state().await;
+    let g = &st["serving"]["scores"];
+    let (me, ve) = (
+        g["model"]["errors"].as_u64().unwrap(),
+        g["vote"]["errors"].as_u64().unwrap(),
+    );
+    let (mf, vf) = (
+        g["model"]["micro_f1"].as_f64().unwrap(),
+        g["vote"]["micro_f1"].as_f64().unwrap(),
+    );
+    // The rule of docs/METHOD.md: the model serves once it has fewer errors and no lower F1.
+    let model_serves = me < ve && mf >= vf;
+    assert_eq!(
+        st["serving"]["predictor"],
+        json!(if model_serves {
+            "model"
+        } else {
+            "majority_vote"
+        }),
+        "{g}"
+    );
+    // Every response's decision is the same predictor.
+    let r = post_authed(&srv, "/v1/fuse", &round(99)).await.json();
+    assert_eq!(r["decision"], st["serving"]["predictor"]);
 }
 
 #[tokio::test(flavor = "multi_thread")]
@@ -437,4 +481,9 @@ async fn the_panels_work_under_the_paper_method_too() {
     );
     let r = bearer_get(&srv, "/ui/api/rounds/r-00000000").await.json();
     assert_eq!(r["method"], json!("paper"));
+    assert_eq!(
+        s["state"]["serving"],
+        json!({"predictor": "model"}),
+        "no gate under paper"
+    );
 }

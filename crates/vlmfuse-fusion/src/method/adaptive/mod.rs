@@ -100,6 +100,23 @@ pub struct Adaptive {
     corr: Option<CorrWindow>,
 }
 
+/// One predictor's decisions on the labelled rounds, as the vote fallback counts them: every
+/// known label of every labelled round, each decided as it was served.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct PredictorScore {
+    /// Hamming errors (false positives plus false negatives).
+    pub errors: u64,
+    /// Micro-F1 (1 with no positive at all).
+    pub micro_f1: f64,
+}
+
+/// The model's and majority vote's scores, which decide who serves (docs/METHOD.md §5).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct GateScores {
+    pub model: PredictorScore,
+    pub vote: PredictorScore,
+}
+
 /// True positives, false positives and false negatives of a stream of decisions.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 struct Tally {
@@ -723,6 +740,19 @@ impl Adaptive {
             (self.posterior(cx, &signals), self.thresholds(cx))
         };
         Inference::decide(signals, q, thresholds, cx.w, Some(scan))
+    }
+
+    /// The two predictors' scores on the labelled rounds the gate has counted (the vote
+    /// fallback's evidence, [`Self::voting`]).
+    pub fn gate_scores(&self) -> GateScores {
+        let score = |t: &Tally| PredictorScore {
+            errors: t.errors(),
+            micro_f1: t.f1(),
+        };
+        GateScores {
+            model: score(&self.model_score),
+            vote: score(&self.vote_score),
+        }
     }
 
     /// Whether the vote fallback is serving majority vote: until the model's decisions, over the

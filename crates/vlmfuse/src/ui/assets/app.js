@@ -369,7 +369,7 @@
       $("calibration-chart").replaceChildren(svg);
     }
     const labels = (sm.labels || []).map((l) => l.id);
-    if (changed("serving", [sv, labels, st.threshold, st.thresholds])) {
+    if (changed("serving", [sv, labels, st.threshold, st.thresholds, st.serving])) {
       setVal("serving-method", sv.method);
       setVal("serving-window", sv.window);
       const dec = Object.entries(sv.decisions || {});
@@ -381,6 +381,20 @@
         h("td", null, swatch(colour(p, i)), p),
         h("td", { class: "num", "data-field": "count", "data-value": String(n) }, String(n)),
         h("td", { class: "num" }, total ? `${Math.round((100 * n) / total)}%` : "–"))) : [h("tr", null, h("td", { colspan: 3 }, none("no decisions yet")))]));
+      // The vote fallback's evidence (adaptive only): who serves, and the scores that decide it.
+      const gate = (st.serving && st.serving.scores) || null;
+      const serving = st.serving ? st.serving.predictor : null;
+      $("serving-gate").hidden = !gate;
+      if (gate) {
+        $("serving-gate").tBodies[0].replaceChildren(...[["model", gate.model], ["majority_vote", gate.vote]].map(([p, sc]) =>
+          h("tr", { "data-predictor": p, class: p === serving ? "serving" : null },
+            h("td", null, p, p === serving ? " (serving)" : ""),
+            h("td", { class: "num", "data-field": "errors", "data-value": String(sc.errors) }, String(sc.errors)),
+            h("td", { class: "num", "data-field": "micro_f1", "data-value": String(sc.micro_f1) }, fmt(sc.micro_f1, 3)))));
+      }
+      $("serving-rule").textContent = gate
+        ? "The vote serves until the model has made fewer errors than it on the labelled rounds, with a micro-F1 no lower."
+        : "The paper method always serves its model.";
       const ag = sv.agreement || {};
       $("serving-agreement").replaceChildren(...Object.keys(ag).map((n) => h("span", { class: "key", "data-reporter": n, "data-field": "agreement", "data-value": String(ag[n]) },
         swatch(colorOf(n)), `${n} ${fmt(ag[n], 2)}`)));
