@@ -388,7 +388,7 @@
       if (gate) {
         $("serving-gate").tBodies[0].replaceChildren(...[["model", gate.model], ["majority_vote", gate.vote]].map(([p, sc]) =>
           h("tr", { "data-predictor": p, class: p === serving ? "serving" : null },
-            h("td", null, p, p === serving ? " (serving)" : ""),
+            h("td", null, p === "majority_vote" ? "vote" : p, p === serving ? " ✓" : ""),
             h("td", { class: "num", "data-field": "errors", "data-value": String(sc.errors) }, String(sc.errors)),
             h("td", { class: "num", "data-field": "micro_f1", "data-value": String(sc.micro_f1) }, fmt(sc.micro_f1, 3)))));
       }
