@@ -18,6 +18,19 @@ pub enum ModelError {
         searched: Vec<PathBuf>,
     },
 
+    /// A Hub file that is not in the cache and could not be downloaded either.
+    #[error(
+        "cannot get `{file}` of {repo}@{revision}: not in the HF cache {} and the download failed: {reason} (set HF_ENDPOINT or the weights' `endpoint` for a mirror, or fill the cache with `huggingface-cli download {repo} --revision {revision}`)",
+        .cache.display()
+    )]
+    Download {
+        repo: String,
+        revision: String,
+        file: String,
+        cache: PathBuf,
+        reason: String,
+    },
+
     /// A file exists but cannot be used (truncated safetensors, wrong tensor shapes, ...).
     #[error("unusable weights in {path}: {reason}")]
     BadWeights { path: PathBuf, reason: String },
@@ -90,6 +103,7 @@ impl ModelError {
     pub fn kind(&self) -> &'static str {
         match self {
             ModelError::MissingWeights { .. } => "missing_weights",
+            ModelError::Download { .. } => "download_failed",
             ModelError::BadWeights { .. } => "bad_weights",
             ModelError::BadConfig(_) => "bad_config",
             ModelError::Device(_) => "device",

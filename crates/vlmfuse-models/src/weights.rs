@@ -1,5 +1,10 @@
-//! Where model files come from. Deployments here have no route to the Hub, so the Hub path is
-//! offline-only: it reads a cache that `huggingface-cli download` (or a copied volume) filled.
+//! Where model files come from: a directory, or a Hub repo at a revision. A Hub file is read
+//! from the standard HF cache when it is there (a cache `huggingface-cli download` or a copied
+//! volume filled, or an earlier download); otherwise it is downloaded into that cache through
+//! hf-hub, with a progress bar on the console, from `endpoint` (or `HF_ENDPOINT`, or
+//! huggingface.co) — TEI's behaviour. `HF_HUB_OFFLINE=1` turns downloads off, for deployments
+//! with no route to the Hub; a file that is neither cached nor downloadable is an error naming
+//! the repo, revision, file, the cache searched and why the download failed.
 
 use std::path::{Path, PathBuf};
 
@@ -12,7 +17,8 @@ use crate::ModelError;
 /// A model's file set: a plain directory, or a Hub repo at a revision inside the local HF cache.
 ///
 /// In TOML: `{ path = "/models/clip" }` or `{ hub = "openai/clip-vit-base-patch32",
-/// revision = "main" }` (`cache_dir` optional; otherwise the HF environment variables decide).
+/// revision = "main" }` (`cache_dir` optional, otherwise the HF environment variables decide;
+/// `endpoint` optional, a mirror, otherwise `HF_ENDPOINT` or https://huggingface.co).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(untagged)]
 pub enum WeightSource {
@@ -25,6 +31,11 @@ pub enum WeightSource {
         revision: String,
         #[serde(default)]
         cache_dir: Option<PathBuf>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        endpoint: Option<String>,
+        /// Never download (the cache only), as `HF_HUB_OFFLINE=1` does for every source.
+        #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+        offline: bool,
     },
 }
 
@@ -42,6 +53,49 @@ impl WeightSource {
             hub: repo.into(),
             revision: revision.into(),
             cache_dir: None,
+            endpoint: None,
+            offline: false,
+        }
+    }
+
+    /// Reads the cache only, never downloads (tests, air-gapped deployments).
+    pub fn offline(self) -> Self {
+        match self {
+            WeightSource::Hub {
+                hub,
+                revision,
+                cache_dir,
+                endpoint,
+                ..
+            } => WeightSource::Hub {
+                hub,
+                revision,
+                cache_dir,
+                endpoint,
+                offline: true,
+            },
+            other => other,
+        }
+    }
+
+    /// Downloads from this Hub endpoint (a mirror, or a test's fake hub) instead of
+    /// `HF_ENDPOINT` / huggingface.co.
+    pub fn with_endpoint(self, url: impl Into<String>) -> Self {
+        match self {
+            WeightSource::Hub {
+                hub,
+                revision,
+                cache_dir,
+                offline,
+                ..
+            } => WeightSource::Hub {
+                hub,
+                revision,
+                cache_dir,
+                endpoint: Some(url.into()),
+                offline,
+            },
+            other => other,
         }
     }
 
@@ -49,10 +103,18 @@ impl WeightSource {
     /// environment does not describe.
     pub fn with_cache_dir(self, dir: impl Into<PathBuf>) -> Self {
         match self {
-            WeightSource::Hub { hub, revision, .. } => WeightSource::Hub {
+            WeightSource::Hub {
+                hub,
+                revision,
+                endpoint,
+                offline,
+                ..
+            } => WeightSource::Hub {
                 hub,
                 revision,
                 cache_dir: Some(dir.into()),
+                endpoint,
+                offline,
             },
             other => other,
         }
@@ -79,7 +141,7 @@ impl WeightSource {
 
     /// Path of `file`, or [`ModelError::MissingWeights`] naming every place looked at.
     pub fn resolve(&self, file: &str) -> Result<PathBuf, ModelError> {
-        match self.try_resolve(file)? {
+        match self.try_resolve(file, false)? {
             Ok(p) => Ok(p),
             Err(searched) => Err(ModelError::MissingWeights {
                 file: file.to_string(),
@@ -91,12 +153,19 @@ impl WeightSource {
     /// Like [`resolve`](Self::resolve) for files that may legitimately be absent
     /// (`model.safetensors.index.json`, `preprocessor_config.json`).
     pub fn resolve_optional(&self, file: &str) -> Result<Option<PathBuf>, ModelError> {
-        Ok(self.try_resolve(file)?.ok())
+        Ok(self.try_resolve(file, true)?.ok())
     }
 
     /// Outer error: the source itself is unusable (unknown revision, no such directory).
     /// Inner error: the source is fine but lacks `file`; carries the places searched.
-    fn try_resolve(&self, file: &str) -> Result<Result<PathBuf, Vec<PathBuf>>, ModelError> {
+    /// `optional`: the file may legitimately be absent from the repo, so a download that cannot
+    /// be made (no route to the Hub) leaves it absent, with a warning, where a cached snapshot
+    /// exists; a required file is an error then.
+    fn try_resolve(
+        &self,
+        file: &str,
+        optional: bool,
+    ) -> Result<Result<PathBuf, Vec<PathBuf>>, ModelError> {
         match self {
             WeightSource::Local { path } => {
                 if !path.is_dir() {
@@ -112,16 +181,67 @@ impl WeightSource {
                 hub,
                 revision,
                 cache_dir,
+                endpoint,
+                offline,
             } => {
                 let root = match cache_dir {
                     Some(d) => d.clone(),
                     None => hub_cache_dir(),
                 };
-                let snapshot = resolve_snapshot(&root, hub, revision)?;
-                let p = snapshot.join(file);
-                // Snapshot entries are symlinks into blobs/; `is_file` follows them, so a
-                // dangling link (blob deleted) counts as missing.
-                Ok(if p.is_file() { Ok(p) } else { Err(vec![p]) })
+                // The cache first: a deployment without a route to the Hub works from it.
+                let snapshot = resolve_snapshot(&root, hub, revision);
+                if let Ok(snap) = &snapshot {
+                    let p = snap.join(file);
+                    // Snapshot entries are symlinks into blobs/; `is_file` follows them, so a
+                    // dangling link (blob deleted) counts as missing.
+                    if p.is_file() {
+                        return Ok(Ok(p));
+                    }
+                    // Known to be absent from the repo (a 404 recorded, as huggingface_hub does).
+                    if no_exist_marker(&root, hub, snap, file).is_some_and(|m| m.is_file()) {
+                        return Ok(Err(vec![p]));
+                    }
+                }
+                let have_snapshot = snapshot.is_ok();
+                let cached = snapshot.map(|snap| Err(vec![snap.join(file)]));
+                if *offline || offline_from(|k| std::env::var(k).ok()) {
+                    return cached;
+                }
+                match download(&root, hub, revision, endpoint.as_deref(), file) {
+                    Ok(p) => Ok(Ok(p)),
+                    // The repo has no such file: as missing as an absent cached one (optional
+                    // files such as `model.safetensors.index.json` are looked up this way).
+                    Err(Download::NotInRepo { url, commit }) => {
+                        if let Some(m) = commit.and_then(|c| {
+                            no_exist_marker(
+                                &root,
+                                hub,
+                                &root.join(repo_folder(hub)).join("snapshots").join(c),
+                                file,
+                            )
+                        }) {
+                            if let Some(dir) = m.parent() {
+                                let _ = std::fs::create_dir_all(dir);
+                            }
+                            let _ = std::fs::write(&m, b"");
+                        }
+                        Ok(Err(vec![PathBuf::from(url)]))
+                    }
+                    Err(Download::Failed(reason)) if optional && have_snapshot => {
+                        tracing::warn!(
+                            repo = %hub, %revision, file, %reason,
+                            "could not ask the Hub for an optional file the cached snapshot lacks; going on without it"
+                        );
+                        cached
+                    }
+                    Err(Download::Failed(reason)) => Err(ModelError::Download {
+                        repo: hub.clone(),
+                        revision: revision.clone(),
+                        file: file.to_string(),
+                        cache: root,
+                        reason,
+                    }),
+                }
             }
         }
     }
@@ -167,6 +287,101 @@ fn read_to_string(p: &Path) -> Result<String, ModelError> {
     std::fs::read_to_string(p).map_err(|source| ModelError::Io {
         path: p.to_path_buf(),
         source,
+    })
+}
+
+/// Whether downloads are off: `HF_HUB_OFFLINE` set to a true value, as `huggingface_hub` reads it.
+fn offline_from(var: impl Fn(&str) -> Option<String>) -> bool {
+    var("HF_HUB_OFFLINE").is_some_and(|v| {
+        matches!(
+            v.trim().to_ascii_lowercase().as_str(),
+            "1" | "true" | "yes" | "on"
+        )
+    })
+}
+
+enum Download {
+    /// The Hub answered 404 for the file: its URL, and the revision's commit when the Hub said.
+    NotInRepo {
+        url: String,
+        commit: Option<String>,
+    },
+    Failed(String),
+}
+
+fn repo_folder(repo_id: &str) -> String {
+    hf_hub::Repo::new(repo_id.to_string(), hf_hub::RepoType::Model).folder_name()
+}
+
+/// `<repo>/.no_exist/<commit>/<file>`: huggingface_hub's record that a revision has no such
+/// file, so that a later load does not ask again. `snapshot` is `<repo>/snapshots/<commit>`.
+fn no_exist_marker(root: &Path, repo_id: &str, snapshot: &Path, file: &str) -> Option<PathBuf> {
+    let commit = snapshot.file_name()?;
+    Some(
+        root.join(repo_folder(repo_id))
+            .join(".no_exist")
+            .join(commit)
+            .join(file),
+    )
+}
+
+/// Downloads one file of `repo_id@revision` into the cache under `root` (hf-hub's layout:
+/// blobs, snapshots, refs), with a progress bar when stderr is a terminal.
+fn download(
+    root: &Path,
+    repo_id: &str,
+    revision: &str,
+    endpoint: Option<&str>,
+    file: &str,
+) -> Result<PathBuf, Download> {
+    use std::io::IsTerminal;
+    let mut b = hf_hub::api::sync::ApiBuilder::from_env()
+        .with_cache_dir(root.to_path_buf())
+        .with_progress(std::io::stderr().is_terminal())
+        .with_retries(2);
+    if let Some(url) = endpoint {
+        b = b.with_endpoint(url.trim_end_matches('/').to_string());
+    }
+    if let Ok(token) = std::env::var("HF_TOKEN") {
+        if !token.trim().is_empty() {
+            b = b.with_token(Some(token.trim().to_string()));
+        }
+    }
+    let api = b
+        .build()
+        .map_err(|e| Download::Failed(format!("cannot set up the Hub client: {e}")))?;
+    let repo = api.repo(hf_hub::Repo::with_revision(
+        repo_id.to_string(),
+        hf_hub::RepoType::Model,
+        revision.to_string(),
+    ));
+    let url = repo.url(file);
+    tracing::info!(%url, cache = %root.display(), "downloading a model file from the Hub");
+    repo.download(file).map_err(|e| {
+        let not_found = match &e {
+            hf_hub::api::sync::ApiError::RequestError(r) => {
+                matches!(**r, ureq::Error::StatusCode(404))
+            }
+            _ => false,
+        };
+        if not_found {
+            // The commit of the revision, if the cache knows it (a 404 answer carries none).
+            let commit = std::fs::read_to_string(
+                root.join(repo_folder(repo_id)).join("refs").join(revision),
+            )
+            .ok()
+            .map(|c| c.trim().to_string())
+            .or_else(|| {
+                (revision.len() == 40 && revision.bytes().all(|b| b.is_ascii_hexdigit()))
+                    .then(|| revision.to_string())
+            });
+            Download::NotInRepo {
+                url: url.clone(),
+                commit,
+            }
+        } else {
+            Download::Failed(format!("{url}: {e}"))
+        }
     })
 }
 
@@ -315,7 +530,9 @@ mod tests {
         );
 
         for rev in ["main", "refs/pr/15", commit] {
-            let src = WeightSource::hub("org/tiny", rev).with_cache_dir(root);
+            let src = WeightSource::hub("org/tiny", rev)
+                .with_cache_dir(root)
+                .offline();
             let p = src.resolve("config.json").unwrap();
             assert_eq!(
                 p,
@@ -324,7 +541,9 @@ mod tests {
             );
         }
 
-        let src = WeightSource::hub("org/tiny", "main").with_cache_dir(root);
+        let src = WeightSource::hub("org/tiny", "main")
+            .with_cache_dir(root)
+            .offline();
         let e = src.resolve("model.safetensors").unwrap_err();
         let msg = e.to_string();
         assert_eq!(e.kind(), "missing_weights");
@@ -336,12 +555,14 @@ mod tests {
 
         let e = WeightSource::hub("org/tiny", "v2")
             .with_cache_dir(root)
+            .offline()
             .resolve("config.json")
             .unwrap_err();
         let msg = e.to_string();
         assert!(msg.contains("`v2`") && msg.contains("refs/v2"), "{msg}");
         let e = WeightSource::hub("org/other", "main")
             .with_cache_dir(root)
+            .offline()
             .resolve("config.json")
             .unwrap_err();
         assert!(e.to_string().contains("models--org--other"), "{e}");

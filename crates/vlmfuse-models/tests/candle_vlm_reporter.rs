@@ -499,7 +499,9 @@ async fn generates_deterministically_from_local_sharded_and_hf_cache() {
         &TinyQwen3Vl::FILES,
     )
     .unwrap();
-    let hub = WeightSource::hub("tiny/qwen3-vl", "main").with_cache_dir(&cache);
+    let hub = WeightSource::hub("tiny/qwen3-vl", "main")
+        .with_cache_dir(&cache)
+        .offline();
     let cached = pooled(
         CandleVlmReporter::load(CandleVlmConfig {
             max_new_tokens: 8,

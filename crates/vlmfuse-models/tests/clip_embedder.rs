@@ -115,7 +115,9 @@ fn hub_cache_layout_loads_the_same_model() {
         &["config.json", "model.safetensors"],
     )
     .unwrap();
-    let hub = WeightSource::hub("openai/clip-tiny", "main").with_cache_dir(cache.path());
+    let hub = WeightSource::hub("openai/clip-tiny", "main")
+        .with_cache_dir(cache.path())
+        .offline();
     let from_hub = ClipEmbedder::load(&hub, &Device::Cpu).unwrap();
     let local = ClipEmbedder::load(&WeightSource::local(src.path()), &Device::Cpu).unwrap();
     assert_eq!(from_hub.name(), "clip:hf:openai/clip-tiny@main");
@@ -127,7 +129,9 @@ fn hub_cache_layout_loads_the_same_model() {
     }];
     assert_eq!(from_hub.embed(&f).unwrap(), local.embed(&f).unwrap());
 
-    let wrong = WeightSource::hub("openai/clip-tiny", "v9").with_cache_dir(cache.path());
+    let wrong = WeightSource::hub("openai/clip-tiny", "v9")
+        .with_cache_dir(cache.path())
+        .offline();
     let e = ClipEmbedder::load(&wrong, &Device::Cpu).err().unwrap();
     assert_eq!(e.kind(), "missing_weights");
     assert!(e.to_string().contains("refs/v9"), "{e}");

@@ -296,7 +296,9 @@ fn layouts_named_files_hub_cache_and_thread_counts() {
         &["model.onnx", "preprocessor_config.json"],
     )
     .unwrap();
-    let hub = WeightSource::hub("Xenova/clip-tiny", "main").with_cache_dir(cache.path());
+    let hub = WeightSource::hub("Xenova/clip-tiny", "main")
+        .with_cache_dir(cache.path())
+        .offline();
     let e = OnnxClipEmbedder::load(&OnnxClipConfig::new(hub)).unwrap();
     assert_eq!(e.name(), "clip-onnx:hf:Xenova/clip-tiny@main");
     assert_eq!(e.embed(&exp.refs()).unwrap(), want);
