@@ -7,6 +7,17 @@ use std::time::Duration;
 use vlmfuse_core::chat::ChatError;
 use vlmfuse_core::BackendError;
 
+/// What a failed Hub download names.
+#[derive(Debug)]
+pub struct DownloadFailure {
+    pub repo: String,
+    pub revision: String,
+    pub file: String,
+    /// The cache root searched.
+    pub cache: PathBuf,
+    pub reason: String,
+}
+
 /// Why a model backend failed.
 #[derive(Debug, thiserror::Error)]
 pub enum ModelError {
@@ -18,18 +29,13 @@ pub enum ModelError {
         searched: Vec<PathBuf>,
     },
 
-    /// A Hub file that is not in the cache and could not be downloaded either.
+    /// A Hub file that is not in the cache and could not be downloaded either (boxed: the
+    /// error stays small on the hot paths that return it).
     #[error(
-        "cannot get `{file}` of {repo}@{revision}: not in the HF cache {} and the download failed: {reason} (set HF_ENDPOINT or the weights' `endpoint` for a mirror, or fill the cache with `huggingface-cli download {repo} --revision {revision}`)",
-        .cache.display()
+        "cannot get `{}` of {}@{}: not in the HF cache {} and the download failed: {} (set HF_ENDPOINT or the weights' `endpoint` for a mirror, or fill the cache with `huggingface-cli download {} --revision {}`)",
+        .0.file, .0.repo, .0.revision, .0.cache.display(), .0.reason, .0.repo, .0.revision
     )]
-    Download {
-        repo: String,
-        revision: String,
-        file: String,
-        cache: PathBuf,
-        reason: String,
-    },
+    Download(Box<DownloadFailure>),
 
     /// A file exists but cannot be used (truncated safetensors, wrong tensor shapes, ...).
     #[error("unusable weights in {path}: {reason}")]
@@ -103,7 +109,7 @@ impl ModelError {
     pub fn kind(&self) -> &'static str {
         match self {
             ModelError::MissingWeights { .. } => "missing_weights",
-            ModelError::Download { .. } => "download_failed",
+            ModelError::Download(_) => "download_failed",
             ModelError::BadWeights { .. } => "bad_weights",
             ModelError::BadConfig(_) => "bad_config",
             ModelError::Device(_) => "device",

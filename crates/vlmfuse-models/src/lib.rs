@@ -16,7 +16,7 @@ pub mod weights;
 
 pub use device::parse_device;
 pub use embed::{ClipEmbedder, ContextEmbedder, Embedder, OnnxClipConfig, OnnxClipEmbedder};
-pub use error::ModelError;
+pub use error::{DownloadFailure, ModelError};
 pub use reporter::{
     run_all, run_all_batch, CandleVlmConfig, CandleVlmReporter, ClipInput, ClipMeta, LocalReporter,
     OpenAiReporter, OpenAiReporterConfig, Reporter, ReporterFailure, ReporterOutput, RoundReporter,

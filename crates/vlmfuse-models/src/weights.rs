@@ -234,13 +234,15 @@ impl WeightSource {
                         );
                         cached
                     }
-                    Err(Download::Failed(reason)) => Err(ModelError::Download {
-                        repo: hub.clone(),
-                        revision: revision.clone(),
-                        file: file.to_string(),
-                        cache: root,
-                        reason,
-                    }),
+                    Err(Download::Failed(reason)) => Err(ModelError::Download(Box::new(
+                        crate::error::DownloadFailure {
+                            repo: hub.clone(),
+                            revision: revision.clone(),
+                            file: file.to_string(),
+                            cache: root,
+                            reason,
+                        },
+                    ))),
                 }
             }
         }
