@@ -83,20 +83,15 @@ pub struct ChatReply {
 /// talk to the same vLLM, and per-backend clients would each hold their own idle sockets.
 pub fn shared_http_client() -> reqwest::Client {
     static CLIENT: OnceLock<reqwest::Client> = OnceLock::new();
-    CLIENT.get_or_init(new_http_client).clone()
-}
-
-/// A client as [`shared_http_client`] builds it: `http://` and `https://` (rustls, the system's
-/// roots through the platform verifier, so `SSL_CERT_FILE` / `SSL_CERT_DIR` add an internal CA).
-pub fn new_http_client() -> reqwest::Client {
-    // reqwest's `rustls-no-provider` leaves the crypto provider to the process; installing it
-    // twice is refused harmlessly (another crate of the process may have done it first).
-    let _ = rustls::crypto::ring::default_provider().install_default();
-    reqwest::Client::builder()
-        .connect_timeout(Duration::from_secs(10))
-        .pool_idle_timeout(Duration::from_secs(90))
-        .build()
-        .expect("reqwest client with default settings")
+    CLIENT
+        .get_or_init(|| {
+            reqwest::Client::builder()
+                .connect_timeout(Duration::from_secs(10))
+                .pool_idle_timeout(Duration::from_secs(90))
+                .build()
+                .expect("reqwest client with default settings")
+        })
+        .clone()
 }
 
 /// `http://host:port`, `http://host:port/v1` or the full URL -> the chat-completions URL.
