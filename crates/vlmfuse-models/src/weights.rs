@@ -198,7 +198,8 @@ impl WeightSource {
                         return Ok(Ok(p));
                     }
                     // Known to be absent from the repo (a 404 recorded, as huggingface_hub does).
-                    if no_exist_marker(&root, hub, snap, file).is_some_and(|m| m.is_file()) {
+                    let commit = snap.file_name().and_then(|c| c.to_str());
+                    if commit.is_some_and(|c| no_exist_marker(&root, hub, c, file).is_file()) {
                         return Ok(Err(vec![p]));
                     }
                 }
@@ -212,14 +213,8 @@ impl WeightSource {
                     // The repo has no such file: as missing as an absent cached one (optional
                     // files such as `model.safetensors.index.json` are looked up this way).
                     Err(Download::NotInRepo { url, commit }) => {
-                        if let Some(m) = commit.and_then(|c| {
-                            no_exist_marker(
-                                &root,
-                                hub,
-                                &root.join(repo_folder(hub)).join("snapshots").join(c),
-                                file,
-                            )
-                        }) {
+                        if let Some(c) = commit {
+                            let m = no_exist_marker(&root, hub, &c, file);
                             if let Some(dir) = m.parent() {
                                 let _ = std::fs::create_dir_all(dir);
                             }
@@ -316,15 +311,12 @@ fn repo_folder(repo_id: &str) -> String {
 }
 
 /// `<repo>/.no_exist/<commit>/<file>`: huggingface_hub's record that a revision has no such
-/// file, so that a later load does not ask again. `snapshot` is `<repo>/snapshots/<commit>`.
-fn no_exist_marker(root: &Path, repo_id: &str, snapshot: &Path, file: &str) -> Option<PathBuf> {
-    let commit = snapshot.file_name()?;
-    Some(
-        root.join(repo_folder(repo_id))
-            .join(".no_exist")
-            .join(commit)
-            .join(file),
-    )
+/// file, so that a later load does not ask again.
+fn no_exist_marker(root: &Path, repo_id: &str, commit: &str, file: &str) -> PathBuf {
+    root.join(repo_folder(repo_id))
+        .join(".no_exist")
+        .join(commit)
+        .join(file)
 }
 
 /// Downloads one file of `repo_id@revision` into the cache under `root` (hf-hub's layout:

@@ -138,7 +138,7 @@ impl Store {
     /// context, which the page does not need).
     pub fn recent_labelled(&self, limit: usize) -> Result<Vec<LabelledRow>, StoreError> {
         let mut st = self.conn.prepare_cached(
-            "SELECT f.labelled_order, f.seq, f.truth, f.outcome, f.rounds_before, f.source,
+            "SELECT f.seq, f.labelled_order, f.truth, f.outcome, f.rounds_before, f.source,
                     r.round_id, r.present, r.reports, r.q
              FROM feedback f JOIN rounds r ON r.seq = f.seq
              ORDER BY f.labelled_order DESC LIMIT ?1",
@@ -146,17 +146,9 @@ impl Store {
         let mut rows = st.query([limit as i64])?;
         let mut out = Vec::new();
         while let Some(row) = rows.next()? {
-            let seq = row.get::<_, i64>(1)? as u64;
-            let before: Option<i64> = row.get(4)?;
+            let seq = row.get::<_, i64>(0)? as u64;
             out.push(LabelledRow {
-                feedback: StoredFeedback {
-                    seq,
-                    labelled_order: row.get::<_, i64>(0)? as u64,
-                    rounds_before: before.map_or(seq + 1, |b| b as u64),
-                    truth: row.get(2)?,
-                    source: row.get(5)?,
-                    outcome: serde_json::from_str(row.get_ref(3)?.as_str()?)?,
-                },
+                feedback: feedback_from(row, seq, 1)?,
                 round_id: row.get(6)?,
                 round: Round {
                     context: Vec::new(),

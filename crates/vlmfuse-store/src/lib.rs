@@ -297,6 +297,25 @@ fn round_from(row: &rusqlite::Row<'_>, at: usize) -> Result<Round, StoreError> {
     })
 }
 
+/// A feedback row of round `seq` from the columns `labelled_order, truth, outcome,
+/// rounds_before, source`, from column `at`. A row written before `rounds_before` was kept
+/// falls right after its round.
+fn feedback_from(
+    row: &rusqlite::Row<'_>,
+    seq: u64,
+    at: usize,
+) -> Result<StoredFeedback, StoreError> {
+    let before: Option<i64> = row.get(at + 3)?;
+    Ok(StoredFeedback {
+        seq,
+        labelled_order: row.get::<_, i64>(at)? as u64,
+        rounds_before: before.map_or(seq + 1, |b| b as u64),
+        truth: row.get(at + 1)?,
+        outcome: serde_json::from_str(row.get_ref(at + 2)?.as_str()?)?,
+        source: row.get(at + 4)?,
+    })
+}
+
 /// What a replay recomputed (under another method), and how many feedbacks it applied.
 #[derive(Default)]
 struct Replayed {
@@ -1387,26 +1406,10 @@ impl Store {
             "SELECT labelled_order, truth, outcome, rounds_before, source FROM feedback
              WHERE seq = ?1 ORDER BY labelled_order",
         )?;
-        let rows = st.query_map([seq as i64], |r| {
-            Ok((
-                r.get::<_, i64>(0)?,
-                r.get::<_, Vec<u8>>(1)?,
-                r.get::<_, String>(2)?,
-                r.get::<_, Option<i64>>(3)?,
-                r.get::<_, String>(4)?,
-            ))
-        })?;
+        let mut rows = st.query([seq as i64])?;
         let mut out = Vec::new();
-        for row in rows {
-            let (order, truth, outcome, before, source) = row?;
-            out.push(StoredFeedback {
-                seq,
-                labelled_order: order as u64,
-                rounds_before: before.map_or(seq + 1, |b| b as u64),
-                truth,
-                source,
-                outcome: serde_json::from_str(&outcome)?,
-            });
+        while let Some(row) = rows.next()? {
+            out.push(feedback_from(row, seq, 0)?);
         }
         Ok(out)
     }

@@ -89,11 +89,7 @@ pub fn fuse_out(engine: &Engine, seq: u64, id: Option<String>, inf: &Inference) 
         labels: ontology.decode(&inf.pred),
         posteriors: Ordered((0..l).map(|k| (label(k), inf.q[k])).collect()),
         method: engine.method().name(),
-        decision: if engine.serving_vote() {
-            "majority_vote"
-        } else {
-            "model"
-        },
+        decision: serving_predictor(engine),
         threshold: inf.thresholds.first().copied().unwrap_or(0.5),
         thresholds: (engine.threshold().mode() == ThresholdMode::PerLabel)
             .then(|| Ordered((0..l).map(|k| (label(k), inf.thresholds[k])).collect())),
@@ -215,6 +211,16 @@ pub fn feedback_out(engine: &Engine, done: &FeedbackDone) -> FeedbackOut {
         reputations_before: all(&o.w_before),
         reputations: all(&o.w_after),
         labelled_rounds: done.feedback.labelled_order + 1,
+    }
+}
+
+/// The predictor that decides rounds now, by the name responses, `/v1/state` and the operator
+/// page give it: `majority_vote` while `adaptive`'s vote fallback serves, else `model`.
+pub fn serving_predictor(engine: &Engine) -> &'static str {
+    if engine.serving_vote() {
+        "majority_vote"
+    } else {
+        "model"
     }
 }
 
@@ -352,11 +358,7 @@ pub fn state_out(eng: &Engine, rounds: u64) -> StateOut {
         rounds,
         dim: eng.dim(),
         serving: ServingOut {
-            predictor: if eng.serving_vote() {
-                "majority_vote"
-            } else {
-                "model"
-            },
+            predictor: serving_predictor(eng),
             scores: eng.gate_scores(),
         },
     }

@@ -55,6 +55,23 @@ fn clip_name(request: &Value) -> Option<String> {
         .map(str::to_string)
 }
 
+/// Each present reporter's labels in a round, in configured order.
+fn reporter_labels<'a>(
+    names: &'a [String],
+    ont: &'a vlmfuse_fusion::Ontology,
+    round: &'a vlmfuse_fusion::Round,
+) -> impl Iterator<Item = (&'a String, Vec<String>)> + 'a {
+    let l = ont.labels().len();
+    names
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| round.present.get(*i).copied().unwrap_or(false))
+        .map(move |(i, n)| {
+            let rep = round.reports.get(i * l..(i + 1) * l).unwrap_or(&[]);
+            (n, ont.decode(rep))
+        })
+}
+
 impl Service {
     /// Runs `f` on the page's read-only connection, opened on first use, off the async threads.
     async fn with_reader<T: Send + 'static>(
@@ -88,11 +105,7 @@ impl Service {
                     .iter()
                     .map(|l| json!({"id": l.id, "name": l.name}))
                     .collect::<Vec<_>>(),
-                if eng.serving_vote() {
-                    "majority_vote"
-                } else {
-                    "model"
-                },
+                crate::wire::serving_predictor(&eng),
             )
         };
         let panels = self
@@ -153,7 +166,7 @@ impl Service {
             out["reliability"] = json!(p.reliability);
             out["calibration"] = json!(p.calibration);
             out["serving"] = json!({
-                "method": state_method(&out),
+                "method": out["state"]["method"].clone(),
                 "window": p.serving.window,
                 "decisions": p.serving.decisions,
                 "agreement": reporters.iter().cloned().zip(p.serving.agreement.iter().copied())
@@ -182,7 +195,6 @@ impl Service {
             let eng = self.shared.engine.read().await;
             (eng.reporters().to_vec(), eng.ontology().clone())
         };
-        let l = ont.labels().len();
         let next_before = if rows.len() == limit {
             rows.last().map(|r| r.seq).filter(|&s| s > 0)
         } else {
@@ -192,14 +204,8 @@ impl Service {
             .into_iter()
             .map(|r| RoundListItem {
                 reporters: Ordered(
-                    names
-                        .iter()
-                        .enumerate()
-                        .filter(|(i, _)| r.round.present.get(*i).copied().unwrap_or(false))
-                        .map(|(i, n)| {
-                            let rep = r.round.reports.get(i * l..(i + 1) * l).unwrap_or(&[]);
-                            (n.clone(), ont.decode(rep))
-                        })
+                    reporter_labels(&names, &ont, &r.round)
+                        .map(|(n, labels)| (n.clone(), labels))
                         .collect(),
                 ),
                 labels: ont.decode(&r.inference.pred),
@@ -261,18 +267,14 @@ impl Service {
             .collect();
         let (merged, sources) = super::writer::merged_truth(l, &events);
         let raw = row.request.get("raw");
-        let reporters: Vec<(String, Value)> = names
-            .iter()
-            .enumerate()
-            .filter(|(i, _)| row.round.present.get(*i).copied().unwrap_or(false))
-            .map(|(i, n)| {
-                let rep = row.round.reports.get(i * l..(i + 1) * l).unwrap_or(&[]);
+        let reporters: Vec<(String, Value)> = reporter_labels(names, ont, &row.round)
+            .map(|(n, labels)| {
                 let text = raw
                     .and_then(|r| r.get(n))
                     .and_then(|r| r.get("text"))
                     .cloned()
                     .unwrap_or(Value::Null);
-                (n.clone(), json!({"labels": ont.decode(rep), "text": text}))
+                (n.clone(), json!({"labels": labels, "text": text}))
             })
             .collect();
         let present: Vec<usize> = inf.signals.coalition.clone();
@@ -314,8 +316,4 @@ impl Service {
         self.with_reader(move |s| s.thumbnail(seq, index)?.ok_or(ServiceError::NotFound(what)))
             .await
     }
-}
-
-fn state_method(out: &Value) -> Value {
-    out["state"]["method"].clone()
 }

@@ -20,6 +20,14 @@ use vlmfuse_testkit_models::fixtures::clip_embedder_toml;
 
 const TOKEN: &str = "operator-test-token-7f3a";
 const ROUNDS: usize = 300;
+/// The dashboard's panels, `#panel-<name>`.
+const PANELS: [&str; 5] = [
+    "reputations",
+    "reliability",
+    "calibration",
+    "rounds",
+    "health",
+];
 
 fn chromium() -> PathBuf {
     for p in ["/usr/bin/chromium", "/usr/bin/chromium-browser"] {
@@ -248,13 +256,7 @@ fn the_operator_page_shows_the_state_and_sends_feedback() {
         .type_into(TOKEN)
         .unwrap();
     tab.press_key("Enter").unwrap();
-    for panel in [
-        "reputations",
-        "reliability",
-        "calibration",
-        "rounds",
-        "health",
-    ] {
+    for panel in PANELS {
         wait_for(
             &tab,
             &format!("document.querySelector('#panel-{panel}[data-ready=\"true\"]')"),
@@ -315,13 +317,7 @@ fn the_operator_page_shows_the_state_and_sends_feedback() {
         .unwrap()
             >= 10
     );
-    for panel in [
-        "reputations",
-        "reliability",
-        "calibration",
-        "rounds",
-        "health",
-    ] {
+    for panel in PANELS {
         shot(
             &tab,
             &format!("#panel-{panel}"),
