@@ -232,6 +232,11 @@ impl Bank {
         self.seqs[pos]
     }
 
+    /// Entry `pos`'s presence flags, `n` of them.
+    pub fn present_of(&self, pos: usize) -> &[u8] {
+        &self.present[pos * self.n..(pos + 1) * self.n]
+    }
+
     pub fn present(&self, pos: usize, i: usize) -> bool {
         self.present[pos * self.n + i] != 0
     }

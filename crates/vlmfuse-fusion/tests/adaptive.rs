@@ -361,3 +361,70 @@ fn layout_is_pinned() {
         paths.join("\n")
     );
 }
+
+/// Two requests in flight: each round is inferred before the previous one joins the pool, so
+/// its scan is stale when it is observed. The engine must still equal a replay of the stored
+/// events (inferences without their scans, so every observation scans afresh), with the
+/// approximate index in use too: completing a stale scan with the newcomers is the exact
+/// scan's answer, not the index's.
+#[test]
+fn overlapping_requests_build_the_engine_a_replay_builds() {
+    let l = Ontology::paper().len();
+    let events = stream(11, 240, l);
+    let mut approximate = adaptive();
+    approximate.adaptive.ann_min = 16;
+    approximate.adaptive.ann_cells = 8;
+    approximate.adaptive.ann_probe = 2;
+    approximate.adaptive.ann_ef = 12;
+    let mut exact = adaptive();
+    exact.adaptive.ann_min = 0;
+    for cfg in [exact, approximate] {
+        let mut live = Engine::new(cfg.clone(), Ontology::paper(), names()).unwrap();
+        let mut replay = Engine::new(cfg.clone(), Ontology::paper(), names()).unwrap();
+        let round = |e: &Engine, (ctx, present, reports, _): &Event| Round {
+            context: e.normalise_context(ctx).unwrap(),
+            present: present.clone(),
+            reports: reports.clone(),
+        };
+        let mut stale = 0;
+        for (pair, evs) in events.chunks(2).enumerate() {
+            let rounds: Vec<Round> = evs.iter().map(|ev| round(&live, ev)).collect();
+            let infs: Vec<Inference> = rounds.iter().map(|r| live.infer(r)).collect();
+            for (i, ((r, inf), ev)) in rounds.iter().zip(&infs).zip(evs).enumerate() {
+                let seq = (2 * pair + i) as u64;
+                stale += (i > 0) as usize;
+                live.observe(seq, r, inf).unwrap();
+                let mut stored = inf.clone();
+                stored.scan = None;
+                replay.observe(seq, r, &stored).unwrap();
+                if let Some(y) = &ev.3 {
+                    for e in [&mut live, &mut replay] {
+                        let o = e.credit(&inf.signals, &inf.w_used, y, seq);
+                        e.apply(
+                            &LabelledRound {
+                                seq,
+                                round: r.clone(),
+                                truth: y.clone(),
+                                q: inf.q.clone(),
+                            },
+                            Some(&o),
+                        )
+                        .unwrap();
+                    }
+                }
+            }
+        }
+        assert!(stale > 100);
+        assert_eq!(
+            live.approximate_knn(),
+            cfg.adaptive.ann_min > 0,
+            "the index is not in use"
+        );
+        assert_eq!(
+            serde_json::to_string(&live).unwrap(),
+            serde_json::to_string(&replay).unwrap(),
+            "ann_min {}: the live engine and the replay differ",
+            cfg.adaptive.ann_min
+        );
+    }
+}

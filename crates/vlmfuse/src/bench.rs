@@ -56,6 +56,13 @@ pub struct BenchArgs {
     /// Skip timing the restart by full replay (as long as the import itself at scale).
     #[arg(long)]
     pub no_full_replay: bool,
+    /// With `--scale`: import the same file a second time with exact kNN only (`ann_min =
+    /// 0`), and score both imports' decisions against the generated truth of every round
+    /// (Hamming loss, micro-F1), over all rounds and over those the approximate index served:
+    /// what approximate neighbours cost the fusion, at the pool sizes where they are used.
+    /// The exact import is slow (its scan is linear in the pool).
+    #[arg(long)]
+    pub compare_exact: bool,
 }
 
 fn parse_method(s: &str) -> Result<Method, String> {
@@ -105,6 +112,8 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
     for &n in &args.scale {
         let tmp = tempfile::tempdir()?;
         let file = tmp.path().join("rounds.jsonl");
+        // Every round's truth (the file keeps one in ten), for `--compare-exact`.
+        let mut truths: Vec<Vec<u8>> = Vec::new();
         {
             let mut synth = synth_for(args, 7);
             let mut w = std::io::BufWriter::new(std::fs::File::create(&file)?);
@@ -126,6 +135,9 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
                     reports,
                     truth: (t % 10 == 0).then(|| ontology.decode(&s.truth)),
                 };
+                if args.compare_exact {
+                    truths.push(s.truth.clone());
+                }
                 serde_json::to_writer(&mut w, &rec)?;
                 w.write_all(b"\n")?;
             }
@@ -147,8 +159,32 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
         }
         cfg.server.data_dir = data.clone();
         let t = Instant::now();
-        let done = crate::import::import(&cfg, &file, 2000, 20, false)?;
+        let mut preds: Vec<Vec<u8>> = Vec::new();
+        let mut served_from: Option<u64> = None;
+        let done = {
+            let mut keep = |i: u64, inf: &vlmfuse_fusion::Inference| {
+                if args.compare_exact {
+                    preds.push(inf.pred.clone());
+                    if served_from.is_none() && inf.scan.as_ref().is_some_and(|s| s.cell.is_some())
+                    {
+                        served_from = Some(i);
+                    }
+                }
+            };
+            crate::import::import_with(
+                &cfg,
+                &file,
+                2000,
+                20,
+                false,
+                &std::sync::atomic::AtomicBool::new(false),
+                &mut keep,
+            )?
+        };
         let import_s = t.elapsed().as_secs_f64();
+        if args.compare_exact {
+            compare_exact(&cfg, &file, tmp.path(), &truths, &preds, served_from)?;
+        }
         let snap_bytes: u64 =
             vlmfuse_store::snapshot::list(&vlmfuse_store::snapshot::dir_of(&data))
                 .iter()
@@ -258,6 +294,77 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
             done.labelled,
             rep.next_seq + args.rounds as u64,
         )?;
+    }
+    Ok(())
+}
+
+/// `--compare-exact`: the same file imported with exact kNN only, and both imports' decisions
+/// scored against every round's generated truth.
+fn compare_exact(
+    cfg: &crate::Config,
+    file: &std::path::Path,
+    tmp: &std::path::Path,
+    truths: &[Vec<u8>],
+    approx: &[Vec<u8>],
+    served_from: Option<u64>,
+) -> anyhow::Result<()> {
+    let mut exact_cfg = cfg.clone();
+    exact_cfg.fusion.adaptive.ann_min = 0;
+    exact_cfg.server.data_dir = tmp.join("data-exact");
+    let t = Instant::now();
+    let mut exact: Vec<Vec<u8>> = Vec::with_capacity(truths.len());
+    crate::import::import_with(
+        &exact_cfg,
+        file,
+        2000,
+        20,
+        false,
+        &std::sync::atomic::AtomicBool::new(false),
+        &mut |_, inf| exact.push(inf.pred.clone()),
+    )?;
+    let exact_s = t.elapsed().as_secs_f64();
+    let score = |preds: &[Vec<u8>], from: usize| {
+        let (mut err, mut cells, mut tp, mut fp, mut fn_) = (0u64, 0u64, 0u64, 0u64, 0u64);
+        for (p, y) in preds[from..].iter().zip(&truths[from..]) {
+            for (&a, &b) in p.iter().zip(y) {
+                cells += 1;
+                err += (a != b) as u64;
+                tp += (a == 1 && b == 1) as u64;
+                fp += (a == 1 && b == 0) as u64;
+                fn_ += (a == 0 && b == 1) as u64;
+            }
+        }
+        let f1 = 2.0 * tp as f64 / (2 * tp + fp + fn_).max(1) as f64;
+        (err as f64 / cells.max(1) as f64, f1)
+    };
+    let differ = |from: usize| {
+        let (mut d, mut c) = (0u64, 0u64);
+        for (a, b) in approx[from..].iter().zip(&exact[from..]) {
+            for (x, y) in a.iter().zip(b) {
+                c += 1;
+                d += (x != y) as u64;
+            }
+        }
+        d as f64 / c.max(1) as f64
+    };
+    let from = served_from.map_or(approx.len(), |s| s as usize);
+    println!(
+        "          exact kNN import {exact_s:.1} s; decisions against the generated truth (Hamming loss, micro-F1), approximate | exact | difference:"
+    );
+    for (what, start) in [("all rounds", 0usize), ("rounds the index served", from)] {
+        if start >= approx.len() {
+            println!("            {what}: none");
+            continue;
+        }
+        let (ha, fa) = score(approx, start);
+        let (he, fe) = score(&exact, start);
+        println!(
+            "            {what} ({}): Hamming {ha:.4} | {he:.4} | {:+.4}; micro-F1 {fa:.4} | {fe:.4} | {:+.4}; decisions that differ {:.4}",
+            approx.len() - start,
+            ha - he,
+            fa - fe,
+            differ(start)
+        );
     }
     Ok(())
 }

@@ -5,11 +5,13 @@
 //! exactly (the same events a live writer would have stored, in the same order), and starts
 //! from the snapshot the import leaves behind instead of replaying the file.
 //!
-//! The file is read twice: first every line is checked (JSON, reporters, labels, context
-//! dimension) and any bad line is reported with its number, storing nothing; then it is
-//! imported in chunks of one transaction each. A failure during the second pass (a full disk,
-//! Ctrl-C or SIGTERM) rolls the directory back to where it was, so a file either imports whole
-//! or not at all. (`kill -9` cannot be caught: it leaves the chunks committed so far.)
+//! The file is read twice at once: one thread checks every line (JSON, reporters, labels,
+//! context dimension), running well ahead of the engine, while the rounds are imported in
+//! chunks of one transaction each. A bad line stops the import, which rolls back and reports
+//! every bad line with its number, storing nothing; so does any other failure (a full disk,
+//! Ctrl-C or SIGTERM): a file either imports whole or not at all. (`kill -9` cannot be
+//! caught: it leaves the chunks committed so far.) Before, the check was a first pass of its
+//! own on the engine's thread, a sixth of the import's time at d = 512.
 
 use crate::config::{Config, ServeArgs};
 use anyhow::{bail, Context};
@@ -142,6 +144,20 @@ pub fn import_until(
     quiet: bool,
     stop: &AtomicBool,
 ) -> anyhow::Result<Imported> {
+    import_with(cfg, file, chunk, max_errors, quiet, stop, &mut |_, _| {})
+}
+
+/// [`import_until`] that shows each round's inference to `on_round` (its 0-based place among
+/// the file's rounds), as it is made: what `vlmfuse bench --scale --compare-exact` scores.
+pub fn import_with(
+    cfg: &Config,
+    file: &Path,
+    chunk: usize,
+    max_errors: usize,
+    quiet: bool,
+    stop: &AtomicBool,
+    on_round: &mut dyn FnMut(u64, &vlmfuse_fusion::Inference),
+) -> anyhow::Result<Imported> {
     if chunk == 0 {
         bail!("--chunk must be at least 1");
     }
@@ -163,58 +179,20 @@ pub fn import_until(
         .load_engine(&mut engine)
         .with_context(|| format!("rebuilding the engine from {}", store.path().display()))?;
 
-    // Pass 1: every line, against a copy of the engine (its dimension fixed by the store or by
-    // the first round, as the service's first stored round fixes it).
-    let b = bar(quiet, total, "checking");
-    let mut check = engine.clone();
-    let mut bad: Vec<String> = Vec::new();
-    let mut nbad = 0usize;
-    let mut good = 0u64;
-    for (line, read, text) in lines(file)? {
-        b.set_position(read);
-        if stop.load(Ordering::Relaxed) {
-            bail!("interrupted while checking the file; nothing was imported");
+    // A parse-only engine (configuration, ontology, reporters and context dimension; no state)
+    // for the threads that check and parse lines beside the engine.
+    let parser = {
+        let mut p = Engine::new(
+            cfg.fusion.clone(),
+            cfg.ontology.clone(),
+            cfg.reporters.clone(),
+        )
+        .context("fusion engine")?;
+        if let Some(d) = engine.dim() {
+            p.fix_dim(d)?;
         }
-        let text = text.with_context(|| format!("{}: line {line}", file.display()))?;
-        let res = serde_json::from_str::<RoundRecord>(&text)
-            .map_err(|e| e.to_string())
-            .and_then(|rec| {
-                if check.dim().is_none() {
-                    check
-                        .fix_dim(rec.context.len())
-                        .map_err(|e| e.to_string())?;
-                }
-                check.parse(&rec).map(|_| ()).map_err(|e| e.to_string())
-            });
-        match res {
-            Ok(()) => good += 1,
-            Err(e) => {
-                nbad += 1;
-                if bad.len() < max_errors {
-                    bad.push(format!("line {line}: {e}"));
-                }
-            }
-        }
-    }
-    b.finish_and_clear();
-    if nbad > 0 {
-        let more = if nbad > bad.len() {
-            format!("\n  ... and {} more", nbad - bad.len())
-        } else {
-            String::new()
-        };
-        bail!(
-            "{}: {nbad} bad line(s); nothing was imported:\n  {}{more}",
-            file.display(),
-            bad.join("\n  ")
-        );
-    }
-    if good == 0 {
-        bail!(
-            "{}: no rounds in the file; nothing was imported",
-            file.display()
-        );
-    }
+        p
+    };
 
     // Pass 2: the events, in chunks of one transaction.
     let start = store.anchor()?;
@@ -222,12 +200,14 @@ pub fn import_until(
     let res = ingest(
         &mut store,
         &mut engine,
+        &parser,
         start.rounds,
         file,
-        chunk,
+        (chunk, max_errors),
         quiet,
         total,
         stop,
+        on_round,
     );
     match res {
         Ok(done) => {
@@ -252,17 +232,84 @@ pub fn import_until(
     }
 }
 
-/// Pass 2: the file's rounds as events from `seq` `first` on.
+/// What the checking thread found: good lines, bad lines (counted), the first `max_errors`
+/// of them with their numbers.
+#[derive(Default)]
+struct Checked {
+    good: u64,
+    nbad: usize,
+    bad: Vec<String>,
+}
+
+/// Checks every line of the file (JSON, reporters, labels, context dimension) against a
+/// parse-only engine, until the end or until `quit`. On the first bad line `failed` is set, so
+/// that the engine side stops and the import rolls back.
+fn check_lines(
+    parser: &Engine,
+    file: &Path,
+    max_errors: usize,
+    failed: &AtomicBool,
+    quit: &AtomicBool,
+) -> anyhow::Result<Checked> {
+    let mut check = parser.clone();
+    let mut out = Checked::default();
+    for (line, _, text) in lines(file)? {
+        if quit.load(Ordering::Relaxed) {
+            break;
+        }
+        let text = text.with_context(|| format!("{}: line {line}", file.display()))?;
+        let res = serde_json::from_str::<RoundRecord>(&text)
+            .map_err(|e| e.to_string())
+            .and_then(|rec| {
+                if check.dim().is_none() {
+                    check
+                        .fix_dim(rec.context.len())
+                        .map_err(|e| e.to_string())?;
+                }
+                check.parse(&rec).map(|_| ()).map_err(|e| e.to_string())
+            });
+        match res {
+            Ok(()) => out.good += 1,
+            Err(e) => {
+                failed.store(true, Ordering::Relaxed);
+                out.nbad += 1;
+                if out.bad.len() < max_errors {
+                    out.bad.push(format!("line {line}: {e}"));
+                }
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// A line made ready for the engine on the parsing thread: the round, its truth, and the
+/// request JSON stored with it.
+struct Parsed {
+    line: usize,
+    read: u64,
+    round: vlmfuse_fusion::Round,
+    truth: Option<Vec<u8>>,
+    request: serde_json::Value,
+}
+
+/// The file's rounds as events from `seq` `first` on, in chunks of one transaction. Four
+/// threads: one checks every line (the whole file, so that every bad line is reported, and
+/// well ahead of the engine, so that a bad file stops the import early); one reads and parses
+/// the lines for the engine; the engine takes the rounds one by one, in order, on this thread
+/// (its work is sequential: each round is inferred against the state the previous ones left);
+/// one commits the chunks. The engine's thread does nothing but the engine's work.
 #[allow(clippy::too_many_arguments)]
 fn ingest(
     store: &mut Store,
     engine: &mut Engine,
+    parser: &Engine,
     mut first: u64,
     file: &Path,
-    chunk: usize,
+    (chunk, max_errors): (usize, usize),
     quiet: bool,
     total: u64,
     stop: &AtomicBool,
+    on_round: &mut dyn FnMut(u64, &vlmfuse_fusion::Inference),
 ) -> anyhow::Result<Imported> {
     let b = bar(quiet, total, "importing");
     let mut seq = first;
@@ -273,28 +320,56 @@ fn ingest(
         labelled: 0,
     };
     let name = file.display().to_string();
-    // The file is read and its JSON parsed on a second thread, a bounded queue ahead of the
-    // engine (which must take the rounds one by one, in order): parsing a line costs about as
-    // much as the engine's work on it.
     let lines = lines(file)?;
+    let failed = AtomicBool::new(false);
+    let quit = AtomicBool::new(false);
     std::thread::scope(|scope| -> anyhow::Result<Imported> {
-        let (tx, rx) =
-            std::sync::mpsc::sync_channel::<(usize, u64, anyhow::Result<RoundRecord>)>(256);
+        let (failed, quit) = (&failed, &quit);
+        let checker = scope.spawn(move || {
+            let r = check_lines(parser, file, max_errors, failed, quit);
+            if r.is_err() {
+                failed.store(true, Ordering::Relaxed);
+            }
+            r
+        });
+        let (tx, rx) = std::sync::mpsc::sync_channel::<anyhow::Result<Parsed>>(256);
         let reader_name = name.clone();
+        let mut parse = parser.clone();
         scope.spawn(move || {
             for (line, read, text) in lines {
-                let rec = text
+                if quit.load(Ordering::Relaxed) {
+                    return;
+                }
+                let parsed = text
                     .with_context(|| format!("{reader_name}: line {line}"))
                     .and_then(|t| {
-                        serde_json::from_str::<RoundRecord>(&t)
-                            .with_context(|| format!("{reader_name}: line {line}"))
+                        let rec = serde_json::from_str::<RoundRecord>(&t)
+                            .with_context(|| format!("{reader_name}: line {line}"))?;
+                        if parse.dim().is_none() {
+                            parse.fix_dim(rec.context.len())?;
+                        }
+                        let (round, truth) = parse
+                            .parse(&rec)
+                            .with_context(|| format!("{reader_name}: line {line}"))?;
+                        let request = serde_json::json!({
+                            "import": { "file": reader_name, "line": line, "id": rec.id },
+                            "reports": rec.reports,
+                        });
+                        Ok(Parsed {
+                            line,
+                            read,
+                            round,
+                            truth,
+                            request,
+                        })
                     });
-                if tx.send((line, read, rec)).is_err() {
+                let bad = parsed.is_err();
+                if tx.send(parsed).is_err() || bad {
                     return;
                 }
             }
         });
-        // Chunks are committed on a third thread, while the engine goes on with the next.
+        // Chunks are committed on their own thread, while the engine goes on with the next.
         let (wtx, wrx) =
             std::sync::mpsc::sync_channel::<(u64, Vec<NewRound>, Vec<StoredFeedback>)>(1);
         let writer = scope.spawn(move || -> anyhow::Result<()> {
@@ -308,18 +383,25 @@ fn ingest(
             wtx.send((first, rounds, fbs)).is_ok()
         };
         let engine_side = (|| -> anyhow::Result<bool> {
-            for (line, read, rec) in rx {
+            for parsed in rx {
+                let Parsed {
+                    line,
+                    read,
+                    round,
+                    truth,
+                    request,
+                } = parsed?;
                 if stop.load(Ordering::Relaxed) {
                     bail!("interrupted at line {line}");
                 }
-                let rec = rec?;
-                if engine.dim().is_none() {
-                    engine.fix_dim(rec.context.len())?;
+                if failed.load(Ordering::Relaxed) {
+                    bail!("a bad line in the file");
                 }
-                let (round, truth) = engine.parse(&rec).with_context(|| {
-                    format!("{name}: line {line} (changed since it was checked?)")
-                })?;
+                if engine.dim().is_none() {
+                    engine.fix_dim(round.context.len())?;
+                }
                 let inf = engine.infer(&round);
+                on_round(done.rounds, &inf);
                 engine.observe(seq, &round, &inf)?;
                 if let Some(truth) = truth {
                     let outcome = engine.credit(&inf.signals, &inf.w_used, &truth, seq);
@@ -347,10 +429,7 @@ fn ingest(
                 rounds.push(NewRound {
                     round,
                     inference: stored,
-                    request: serde_json::json!({
-                        "import": { "file": name, "line": line, "id": rec.id },
-                        "reports": rec.reports,
-                    }),
+                    request,
                     created_ms: vlmfuse_store::timestamp_ms(),
                     thumbnails: Vec::new(),
                 });
@@ -365,20 +444,41 @@ fn ingest(
                     b.set_position(read);
                 }
             }
-            Ok(commit(
-                first,
-                std::mem::take(&mut rounds),
-                std::mem::take(&mut fbs),
-            ))
+            Ok(rounds.is_empty()
+                || commit(first, std::mem::take(&mut rounds), std::mem::take(&mut fbs)))
         })();
         drop(wtx);
+        // Anything but a bad line (an interrupt, a refused commit) needs no full check.
+        if !failed.load(Ordering::Relaxed) {
+            quit.store(true, Ordering::Relaxed);
+        }
         let written = writer
             .join()
             .map_err(|_| anyhow::anyhow!("the import's writer thread panicked"))?;
-        // The writer's error first: a refused commit is why the engine side stopped.
+        let checked = checker
+            .join()
+            .map_err(|_| anyhow::anyhow!("the import's checking thread panicked"))??;
+        quit.store(true, Ordering::Relaxed);
+        b.finish_and_clear();
+        // Bad lines first: they are why the engine side stopped, and every one is listed.
+        if checked.nbad > 0 {
+            let more = if checked.nbad > checked.bad.len() {
+                format!("\n  ... and {} more", checked.nbad - checked.bad.len())
+            } else {
+                String::new()
+            };
+            bail!(
+                "{name}: {} bad line(s); nothing was imported:\n  {}{more}",
+                checked.nbad,
+                checked.bad.join("\n  ")
+            );
+        }
+        // Then the writer's: a refused commit is why the engine side stopped.
         written?;
         engine_side?;
-        b.finish_and_clear();
+        if done.rounds == 0 {
+            bail!("{name}: no rounds in the file; nothing was imported");
+        }
         Ok(done)
     })
 }

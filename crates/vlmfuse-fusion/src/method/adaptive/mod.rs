@@ -98,6 +98,35 @@ pub struct Adaptive {
     threshold: ThresholdFitter,
     /// The paper method's window of error correlations, kept only under `guardrail = "window"`.
     corr: Option<CorrWindow>,
+    /// Bumped whenever what the guardrail's correlations are computed from changes (the pair
+    /// sums, their base clock, the window): the key of a [`RhoCache`]. Not state (never
+    /// saved; any value works after a load, the caches live within one event).
+    #[serde(skip)]
+    rho_version: u64,
+}
+
+/// The guardrail's correlations per coalition, reused across the E-steps of one event: an
+/// E-step of an unlabelled entry leaves the pair sums as they were, so the `p (p - 1) L`
+/// smoothed phi coefficients of every E-step after the first are the first one's, bit for
+/// bit. Keyed by [`Adaptive::rho_version`].
+#[derive(Default)]
+struct RhoCache {
+    version: u64,
+    entries: Vec<(Vec<usize>, Vec<f64>)>,
+}
+
+impl RhoCache {
+    fn get(&mut self, version: u64, coalition: &[usize]) -> Option<&Vec<f64>> {
+        if self.version != version {
+            self.version = version;
+            self.entries.clear();
+            return None;
+        }
+        self.entries
+            .iter()
+            .find(|(c, _)| c == coalition)
+            .map(|(_, r)| r)
+    }
 }
 
 /// One predictor's decisions on the labelled rounds, as the vote fallback counts them: every
@@ -209,6 +238,7 @@ impl Adaptive {
             threshold: ThresholdFitter::new(&tcfg, l),
             corr: (a.guardrail == Guardrail::Window)
                 .then(|| CorrWindow::new(n, l, cfg.corr_window)),
+            rho_version: 0,
         }
     }
 
@@ -338,6 +368,7 @@ impl Adaptive {
         if !pool.is_labelled(pos) {
             return;
         }
+        self.rho_version += 1;
         // Error co-occurrence of labelled rounds: with y = 1 reporter i errs iff r_i = 0.
         for i in 0..n {
             if !pool.bank.present(pos, i) {
@@ -378,6 +409,7 @@ impl Adaptive {
             (sign, sign * self.global.unlabelled)
         };
         let extra_pi = wpi_full - wpi;
+        self.rho_version += 1;
         let (n, l) = (cx.n, cx.l);
         let pool = &self.pool;
         let g = &mut self.global;
@@ -422,6 +454,7 @@ impl Adaptive {
     /// Recomputes the whole-pool sums from scratch at the current clock (clears the rounding
     /// that incremental updates accumulate, and rebases the decay).
     fn global_rebuild(&mut self, cx: &Ctx) {
+        self.rho_version += 1;
         self.global = GlobalSums {
             base: cx.labelled,
             ..GlobalSums::new(cx.n, cx.l, Self::unlabelled_weight(cx))
@@ -478,8 +511,9 @@ impl Adaptive {
         cx: &Ctx,
         present: &[bool],
         reports: &[u8],
-        nb: &[(usize, f64)],
+        nb: &[pool::Nb],
         at: u64,
+        rho_cache: Option<&mut RhoCache>,
     ) -> Signals {
         let cfg = cx.cfg;
         let a = &cfg.adaptive;
@@ -537,8 +571,18 @@ impl Adaptive {
             let mut pi_mass = 0.0;
             let mut pi_pos = vec![0.0; l];
             // The entry's weight before the unlabelled factor, and after it.
-            let weight = |pos: usize, sim: f64, decayed: bool| -> (f64, f64) {
-                let mut w = sim.max(0.0).powf(cfg.tau);
+            // Without decay a neighbour's ranking weight is `kernel(sim)` itself, computed
+            // when it joined the list: the same expression, so the same bits, without a
+            // `powf` per neighbour and E-step.
+            let keyed = a.half_life <= 0.0;
+            let weight = |e: &pool::Nb, decayed: bool| -> (f64, f64) {
+                let (pos, sim) = (e.pos as usize, e.sim);
+                debug_assert!(!keyed || e.key == sim.max(0.0).powf(cfg.tau));
+                let mut w = if keyed {
+                    e.key
+                } else {
+                    sim.max(0.0).powf(cfg.tau)
+                };
                 if decayed && a.half_life > 0.0 {
                     let age = (at as f64 - pool.clock(pos) as f64).abs();
                     w *= decay(age, a.half_life);
@@ -551,9 +595,14 @@ impl Adaptive {
             };
             // Per label: the extra prior mass of partially labelled neighbours' known labels.
             let mut pi_known = vec![0.0; l];
-            pool.prefetch(nb.iter().take(cfg.k.max(cfg.k_prior)).map(|n| n.0));
-            for &(pos, sim) in nb.iter().take(cfg.k) {
-                let (full, w) = weight(pos, sim, true);
+            pool.prefetch(
+                nb.iter()
+                    .take(cfg.k.max(cfg.k_prior))
+                    .map(|n| n.pos as usize),
+            );
+            for e in nb.iter().take(cfg.k) {
+                let pos = e.pos as usize;
+                let (full, w) = weight(e, true);
                 if pool.is_partial(pos) && full > w {
                     // Known labels of a partly labelled neighbour weigh as labelled ones.
                     let t = pool.soft(pos);
@@ -602,8 +651,9 @@ impl Adaptive {
                     }
                 }
             }
-            for &(pos, sim) in nb.iter().take(cfg.k_prior) {
-                let (full, w) = weight(pos, sim, a.decay_prior);
+            for e in nb.iter().take(cfg.k_prior) {
+                let pos = e.pos as usize;
+                let (full, w) = weight(e, a.decay_prior);
                 if pool.is_partial(pos) && full > w {
                     let t = pool.soft(pos);
                     for k in (0..l).filter(|&k| pool.known(pos, k)) {
@@ -632,6 +682,56 @@ impl Adaptive {
                 prior[k] = (pa + pi_pos[k]) / (pa + pb + (pi_mass + pi_known[k]));
             }
         }
+        let cached = match rho_cache {
+            Some(c) => match c.get(self.rho_version, &coalition) {
+                Some(r) => Ok(r.clone()),
+                None => Err(Some(c)),
+            },
+            None => Err(None),
+        };
+        let rho = match cached {
+            Ok(r) => r,
+            Err(cache) => {
+                let r = self.rho(cx, &coalition);
+                if let Some(c) = cache {
+                    c.entries.push((coalition.clone(), r.clone()));
+                }
+                r
+            }
+        };
+        let mut rep = Vec::with_capacity(p * l);
+        for &i in &coalition {
+            rep.extend_from_slice(&reports[i * l..(i + 1) * l]);
+        }
+        let wmax = cx.w.iter().copied().fold(0.0f64, f64::max);
+        let w = coalition
+            .iter()
+            .map(|&i| match a.weights {
+                WeightNorm::MaxOne => cx.w[i] / wmax,
+                WeightNorm::SumOne => cx.w[i],
+                WeightNorm::MeanOne => n as f64 * cx.w[i],
+                WeightNorm::Capped => (n as f64 * cx.w[i] / a.full_weight_at).min(1.0),
+            })
+            .collect();
+        Signals {
+            l,
+            coalition,
+            theta_pos,
+            theta_neg,
+            rho,
+            prior,
+            reports: rep,
+            w,
+            eps: cfg.eps,
+        }
+    }
+
+    /// The guardrail's correlations for a coalition: `rho[(x p + y) L + k]` for members `x != y`.
+    fn rho(&self, cx: &Ctx, coalition: &[usize]) -> Vec<f64> {
+        let cfg = cx.cfg;
+        let a = &cfg.adaptive;
+        let (n, l) = (cx.n, cx.l);
+        let p = coalition.len();
         let mut rho = vec![0.0; p * p * l];
         if !cfg.ablations.no_guardrail {
             let scale = decay((cx.labelled - self.global.base) as f64, a.half_life);
@@ -658,31 +758,7 @@ impl Adaptive {
                 }
             }
         }
-        let mut rep = Vec::with_capacity(p * l);
-        for &i in &coalition {
-            rep.extend_from_slice(&reports[i * l..(i + 1) * l]);
-        }
-        let wmax = cx.w.iter().copied().fold(0.0f64, f64::max);
-        let w = coalition
-            .iter()
-            .map(|&i| match a.weights {
-                WeightNorm::MaxOne => cx.w[i] / wmax,
-                WeightNorm::SumOne => cx.w[i],
-                WeightNorm::MeanOne => n as f64 * cx.w[i],
-                WeightNorm::Capped => (n as f64 * cx.w[i] / a.full_weight_at).min(1.0),
-            })
-            .collect();
-        Signals {
-            l,
-            coalition,
-            theta_pos,
-            theta_neg,
-            rho,
-            prior,
-            reports: rep,
-            w,
-            eps: cfg.eps,
-        }
+        rho
     }
 
     /// Calibrated posteriors of a round's signals (the raw ones when calibration is off, which
@@ -729,8 +805,14 @@ impl Adaptive {
             Some(s) if !self.pool.ann_active() => self.pool.scan_by_seq(s, cx.labelled),
             _ => self.pool.scan(&round.context, cx.labelled),
         };
-        let nb: Vec<(usize, f64)> = scan.top.iter().map(|n| (n.pos as usize, n.sim)).collect();
-        let signals = self.signals(cx, &round.present, &round.reports, &nb, cx.labelled);
+        let signals = self.signals(
+            cx,
+            &round.present,
+            &round.reports,
+            &scan.top,
+            cx.labelled,
+            None,
+        );
         let (q, thresholds) = if self.voting(cx) {
             (
                 self.vote_posterior(cx, round),
@@ -815,24 +897,25 @@ impl Adaptive {
         match scan {
             Some(s) if s.epoch != pool.epoch() => pool.scan(context, cx.labelled),
             Some(s) if s.pool_len == pool.len() => s.clone(),
-            Some(s) if s.pool_len < pool.len() => pool.extend_scan(context, cx.labelled, s),
+            // Completing a scan with the entries that joined since gives the fresh exact scan
+            // (the best of the old best and the newcomers), but not the approximate index's:
+            // it may not have found a newcomer, and a replay (which scans afresh) must build
+            // the same lists.
+            Some(s) if s.pool_len < pool.len() && !pool.ann_active() => {
+                pool.extend_scan(context, cx.labelled, s)
+            }
             _ => pool.scan(context, cx.labelled),
         }
     }
 
     /// Re-estimates one unlabelled entry's soft truth from its neighbours (one E-step).
-    fn estep(&mut self, cx: &Ctx, pos: usize) {
+    fn estep(&mut self, cx: &Ctx, pos: usize, rho: &mut RhoCache) {
         let pool = &self.pool;
         if pool.is_labelled(pos) {
             return;
         }
-        let nb: Vec<(usize, f64)> = pool
-            .neighbours(pos)
-            .iter()
-            .map(|e| (e.pos as usize, e.sim))
-            .collect();
         let (present, reports, at) = (pool.present(pos), pool.reports(pos), pool.clock(pos));
-        let s = self.signals(cx, &present, &reports, &nb, at);
+        let s = self.signals(cx, &present, &reports, pool.neighbours(pos), at, Some(rho));
         let mut t = self.soft_truth(cx, &s, None);
         if pool.is_partial(pos) {
             // Only the unknown labels are estimated; the known ones stay the truth.
@@ -847,21 +930,52 @@ impl Adaptive {
         self.global_add(cx, pos, 1.0);
     }
 
+    /// E-steps of these entries, in order. The next entries' lists and their neighbours' data
+    /// are prefetched a step or two ahead (the E-steps of a large pool wait on memory more than
+    /// they compute); hints only, so the results are those of the plain loop.
+    fn esteps(&mut self, cx: &Ctx, order: &[usize]) {
+        let mut rho = RhoCache::default();
+        let ahead = cx.cfg.k.max(cx.cfg.k_prior);
+        if let Some(&p) = order.first() {
+            self.pool.prefetch_entry(p);
+        }
+        for (i, &pos) in order.iter().enumerate() {
+            if let Some(&p) = order.get(i + 2) {
+                self.pool.prefetch_entry(p);
+            }
+            if let Some(&p) = order.get(i + 1) {
+                let pool = &self.pool;
+                pool.prefetch(
+                    pool.neighbours(p)
+                        .iter()
+                        .take(ahead)
+                        .map(|e| e.pos as usize),
+                );
+            }
+            self.estep(cx, pos, &mut rho);
+        }
+    }
+
     /// The per-event EM work: E-steps of the next `em_chunk` unlabelled entries, cycling through
     /// them in pool order.
     fn em_chunk(&mut self, cx: &Ctx) {
         // Never more E-steps than there are unlabelled entries: a chunk visits each at most once.
         let chunk = cx.cfg.adaptive.em_chunk.min(self.pool.unlabelled().len());
+        // The entries this chunk visits, known in advance (an E-step labels nothing, so the
+        // unlabelled list stays as it is): the cursor is a pool position, each entry the next
+        // unlabelled one at or after it.
+        let list = self.pool.unlabelled();
+        let mut order = Vec::with_capacity(chunk);
+        let mut cursor = self.cursor;
         for _ in 0..chunk {
-            let list = self.pool.unlabelled();
-            if list.is_empty() {
-                return;
-            }
-            // The cursor is a pool position: the next unlabelled entry at or after it.
-            let i = list.partition_point(|&p| (p as usize) < self.cursor);
+            let i = list.partition_point(|&p| (p as usize) < cursor);
             let pos = list[if i < list.len() { i } else { 0 }] as usize;
-            self.estep(cx, pos);
-            self.cursor = pos + 1;
+            order.push(pos);
+            cursor = pos + 1;
+        }
+        self.esteps(cx, &order);
+        if let Some(&last) = order.last() {
+            self.cursor = last + 1;
         }
     }
 
@@ -952,6 +1066,7 @@ impl Adaptive {
         }
         if let Some(corr) = self.corr.as_mut() {
             corr.push(&lr.round.present, &lr.round.reports, &lr.truth);
+            self.rho_version += 1;
         }
         let l = lr.truth.len();
         let parts = outcome.filter(|o| o.evidence.len() == l && o.prior_logit.len() == l);
@@ -1029,9 +1144,7 @@ impl Adaptive {
                 .filter(|&p| !self.pool.is_labelled(p))
                 .take(a.refresh_max)
                 .collect();
-            for p in touched {
-                self.estep(cx, p);
-            }
+            self.esteps(cx, &touched);
         }
         // The engine's labelled count advances with this round.
         let after = Ctx {

@@ -187,21 +187,41 @@ impl Pool {
             // SAFETY: a prefetch is a hint; the pointer is the start of a live slice.
             unsafe { std::arch::x86_64::_mm_prefetch(row, std::arch::x86_64::_MM_HINT_T0) };
         }
+        // What the round's inference reads of its neighbours next (soft truths, reports),
+        // for every candidate: the neighbours are among them.
+        self.prefetch(cand.iter().copied());
         let mut top = Vec::with_capacity(cand.len());
         let mut rev = Vec::new();
         // Without decay, entering a list is a cosine test against its flat copy of the worst
-        // kept cosine (as in the exact scan): no pointer chase, no `powf`, per candidate.
+        // kept cosine (as in the exact scan): no pointer chase, no `powf`, per candidate; and
+        // ranking by weight is ranking by cosine, so only the kept neighbours' weights are
+        // computed.
         let by_sim = self.half_life <= 0.0 && self.worst_sim.len() == len;
-        for j in cand {
-            let sim = self.bank.sim(x, j);
-            top.push(self.nb_at(j, sim, at));
-            let enters = if by_sim {
-                sim >= self.worst_sim[j]
-            } else {
-                self.may_enter(j, sim, at)
-            };
-            if enters {
-                rev.push((j, sim));
+        if by_sim {
+            let mut best: Vec<(usize, f64)> = Vec::with_capacity(cand.len());
+            for &j in &cand {
+                let sim = self.bank.sim(x, j);
+                if sim >= self.worst_sim[j] {
+                    rev.push((j, sim));
+                }
+                best.push((j, sim));
+            }
+            if m > 0 && best.len() > m {
+                let cmp = |a: &(usize, f64), b: &(usize, f64)| {
+                    b.1.total_cmp(&a.1)
+                        .then(self.bank.seq(a.0).cmp(&self.bank.seq(b.0)))
+                };
+                best.select_nth_unstable_by(m - 1, cmp);
+                best.truncate(m);
+            }
+            top.extend(best.into_iter().map(|(j, s)| self.nb_at(j, s, at)));
+        } else {
+            for &j in &cand {
+                let sim = self.bank.sim(x, j);
+                top.push(self.nb_at(j, sim, at));
+                if self.may_enter(j, sim, at) {
+                    rev.push((j, sim));
+                }
             }
         }
         self.rank(&mut top, m);
@@ -308,17 +328,53 @@ impl Pool {
         for pos in positions {
             use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
             let t = self.soft[pos * self.l..].as_ptr() as *const i8;
-            let r = self.bank.reports_of(pos).as_ptr() as *const i8;
-            // SAFETY: a prefetch is a hint; both pointers are in bounds of live slices.
+            let reports = self.bank.reports_of(pos);
+            let r = reports.as_ptr() as *const i8;
+            let flags = [
+                self.bank.present_of(pos).as_ptr() as *const i8,
+                self.labelled[pos..].as_ptr() as *const i8,
+                self.partial[pos..].as_ptr() as *const i8,
+            ];
+            // SAFETY: a prefetch is a hint; every pointer is in bounds of a live slice (or one
+            // past a slice's last byte, which a prefetch never dereferences).
             unsafe {
                 _mm_prefetch(t, _MM_HINT_T0);
                 _mm_prefetch(t.wrapping_add(64), _MM_HINT_T0);
                 _mm_prefetch(t.wrapping_add(self.l * 8 - 1), _MM_HINT_T0);
                 _mm_prefetch(r, _MM_HINT_T0);
+                _mm_prefetch(r.wrapping_add(reports.len().saturating_sub(1)), _MM_HINT_T0);
+                for f in flags {
+                    _mm_prefetch(f, _MM_HINT_T0);
+                }
             }
         }
         #[cfg(not(target_arch = "x86_64"))]
         let _ = positions;
+    }
+
+    /// Asks the processor to start loading entry `pos`'s neighbour list and its own soft truth
+    /// and reports (what an E-step of it reads first): issued a step or two ahead of the
+    /// E-steps of one event, whose entries are known in advance, so that each E-step finds its
+    /// neighbours' positions in cache. A hint only.
+    #[inline]
+    pub fn prefetch_entry(&self, pos: usize) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+            let list = self.nb[pos].as_ptr() as *const i8;
+            let bytes = self.nb[pos].len() * std::mem::size_of::<Nb>();
+            // SAFETY: hints only; the pointers are in (or one past) live allocations.
+            unsafe {
+                let mut off = 0;
+                while off < bytes {
+                    _mm_prefetch(list.wrapping_add(off), _MM_HINT_T0);
+                    off += 64;
+                }
+            }
+            self.prefetch(std::iter::once(pos));
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = pos;
     }
 
     pub fn soft(&self, pos: usize) -> &[f64] {
