@@ -441,3 +441,34 @@ fn an_interrupted_import_stores_nothing() {
     assert!(mid > 0 && (mid as usize) < rounds.len());
     assert_eq!(stored(&dir), 0, "{mid} rounds were committed and stayed");
 }
+
+/// A bad line at the end of a long file: the check runs beside the import, so chunks may be
+/// committed before it is found; the import stops, rolls back, and reports the line.
+#[test]
+fn a_bad_last_line_rolls_back_the_chunks_before_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let rounds = generate_rounds(3000, 32, 5);
+    let reporters = sorted_reporters(&rounds).join(",");
+    let file = tmp.path().join("rounds.jsonl");
+    write_jsonl(&file, &rounds);
+    let mut text = std::fs::read_to_string(&file).unwrap();
+    text.push_str("{\"context\": [1.0], \"reports\": {}}\n");
+    std::fs::write(&file, text).unwrap();
+    let dir = tmp.path().join("data");
+    let o = Command::new(BIN)
+        .args(["import", file.to_str().unwrap(), "--quiet", "--chunk", "50"])
+        .args(["--reporters", &reporters, "--data-dir"])
+        .arg(&dir)
+        .env_remove("VLMFUSE_CONFIG")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "a bad file was imported");
+    for want in ["line 3001:", "1 bad line(s)", "nothing was imported"] {
+        assert!(err.contains(want), "{want:?} missing from: {err}");
+    }
+    let stored = vlmfuse_store::Store::open_read_only(&dir)
+        .and_then(|s| s.counts())
+        .map_or(0, |c| c.0);
+    assert_eq!(stored, 0, "a refused file left rounds stored");
+}
