@@ -171,7 +171,7 @@ fn scale_bench(args: &BenchArgs) -> anyhow::Result<()> {
                     }
                 }
             };
-            crate::import::import_with(
+            crate::import::import(
                 &cfg,
                 &file,
                 2000,
@@ -313,7 +313,7 @@ fn compare_exact(
     exact_cfg.server.data_dir = tmp.join("data-exact");
     let t = Instant::now();
     let mut exact: Vec<Vec<u8>> = Vec::with_capacity(truths.len());
-    crate::import::import_with(
+    crate::import::import(
         &exact_cfg,
         file,
         2000,

@@ -10,8 +10,7 @@
 //! chunks of one transaction each. A bad line stops the import, which rolls back and reports
 //! every bad line with its number, storing nothing; so does any other failure (a full disk,
 //! Ctrl-C or SIGTERM): a file either imports whole or not at all. (`kill -9` cannot be
-//! caught: it leaves the chunks committed so far.) Before, the check was a first pass of its
-//! own on the engine's thread, a sixth of the import's time at d = 512.
+//! caught: it leaves the chunks committed so far.)
 
 use crate::config::{Config, ServeArgs};
 use anyhow::{bail, Context};
@@ -100,13 +99,14 @@ pub fn run(args: ImportArgs) -> anyhow::Result<()> {
     let cfg = Config::load(&args.serve)?;
     let t = Instant::now();
     let (stop, ids) = stop_flag()?;
-    let res = import_until(
+    let res = import(
         &cfg,
         &args.file,
         args.chunk,
         args.max_errors,
         args.quiet,
         &stop,
+        &mut |_, _| {},
     );
     for id in ids {
         signal_hook::low_level::unregister(id);
@@ -124,32 +124,11 @@ pub fn run(args: ImportArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Imports `file` into `cfg.server.data_dir` (see the module docs).
+/// Imports `file` into `cfg.server.data_dir` (see the module docs). It gives up, storing
+/// nothing, once `stop` is set; `on_round` sees each round's inference as it is made, with
+/// the round's 0-based place among the file's rounds (what `vlmfuse bench --scale
+/// --compare-exact` scores).
 pub fn import(
-    cfg: &Config,
-    file: &Path,
-    chunk: usize,
-    max_errors: usize,
-    quiet: bool,
-) -> anyhow::Result<Imported> {
-    import_until(cfg, file, chunk, max_errors, quiet, &AtomicBool::new(false))
-}
-
-/// [`import`] that gives up, storing nothing, once `stop` is set.
-pub fn import_until(
-    cfg: &Config,
-    file: &Path,
-    chunk: usize,
-    max_errors: usize,
-    quiet: bool,
-    stop: &AtomicBool,
-) -> anyhow::Result<Imported> {
-    import_with(cfg, file, chunk, max_errors, quiet, stop, &mut |_, _| {})
-}
-
-/// [`import_until`] that shows each round's inference to `on_round` (its 0-based place among
-/// the file's rounds), as it is made: what `vlmfuse bench --scale --compare-exact` scores.
-pub fn import_with(
     cfg: &Config,
     file: &Path,
     chunk: usize,
@@ -232,6 +211,21 @@ pub fn import_with(
     }
 }
 
+/// One line as the engine takes it: the record, its round and its truth. `p` is a parse-only
+/// engine; the first line fixes its context dimension when the store has none yet (as the
+/// service's first stored round does).
+fn parse_line(
+    p: &mut Engine,
+    text: &str,
+) -> anyhow::Result<(RoundRecord, vlmfuse_fusion::Round, Option<Vec<u8>>)> {
+    let rec = serde_json::from_str::<RoundRecord>(text)?;
+    if p.dim().is_none() {
+        p.fix_dim(rec.context.len())?;
+    }
+    let (round, truth) = p.parse(&rec)?;
+    Ok((rec, round, truth))
+}
+
 /// What the checking thread found: good lines, bad lines (counted), the first `max_errors`
 /// of them with their numbers.
 #[derive(Default)]
@@ -258,18 +252,8 @@ fn check_lines(
             break;
         }
         let text = text.with_context(|| format!("{}: line {line}", file.display()))?;
-        let res = serde_json::from_str::<RoundRecord>(&text)
-            .map_err(|e| e.to_string())
-            .and_then(|rec| {
-                if check.dim().is_none() {
-                    check
-                        .fix_dim(rec.context.len())
-                        .map_err(|e| e.to_string())?;
-                }
-                check.parse(&rec).map(|_| ()).map_err(|e| e.to_string())
-            });
-        match res {
-            Ok(()) => out.good += 1,
+        match parse_line(&mut check, &text) {
+            Ok(_) => out.good += 1,
             Err(e) => {
                 failed.store(true, Ordering::Relaxed);
                 out.nbad += 1;
@@ -343,13 +327,7 @@ fn ingest(
                 let parsed = text
                     .with_context(|| format!("{reader_name}: line {line}"))
                     .and_then(|t| {
-                        let rec = serde_json::from_str::<RoundRecord>(&t)
-                            .with_context(|| format!("{reader_name}: line {line}"))?;
-                        if parse.dim().is_none() {
-                            parse.fix_dim(rec.context.len())?;
-                        }
-                        let (round, truth) = parse
-                            .parse(&rec)
+                        let (rec, round, truth) = parse_line(&mut parse, &t)
                             .with_context(|| format!("{reader_name}: line {line}"))?;
                         let request = serde_json::json!({
                             "import": { "file": reader_name, "line": line, "id": rec.id },
@@ -382,8 +360,12 @@ fn ingest(
             // A closed queue means the writer failed: its error is the one to report.
             wtx.send((first, rounds, fbs)).is_ok()
         };
+        // Set when the engine side stopped on a line the reader could not parse: the checker
+        // then runs to the end of the file, so that every bad line is listed.
+        let mut bad_line = false;
         let engine_side = (|| -> anyhow::Result<bool> {
             for parsed in rx {
+                bad_line = parsed.is_err();
                 let Parsed {
                     line,
                     read,
@@ -448,8 +430,8 @@ fn ingest(
                 || commit(first, std::mem::take(&mut rounds), std::mem::take(&mut fbs)))
         })();
         drop(wtx);
-        // Anything but a bad line (an interrupt, a refused commit) needs no full check.
-        if !failed.load(Ordering::Relaxed) {
+        // Anything but a bad line (an interrupt, a refused commit, the end) needs no full check.
+        if !failed.load(Ordering::Relaxed) && !bad_line {
             quit.store(true, Ordering::Relaxed);
         }
         let written = writer

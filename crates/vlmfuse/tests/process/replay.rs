@@ -321,14 +321,26 @@ fn replay_equals_eval_and_a_kill_9_loses_nothing() {
 }
 
 fn import(file: &Path, dir: &Path, reporters: &str) -> std::process::Output {
-    Command::new(BIN)
-        .args(["import", file.to_str().unwrap(), "--quiet", "--reporters"])
+    import_command(file, dir, reporters, &[]).output().unwrap()
+}
+
+/// `vlmfuse import FILE --quiet --reporters R --data-dir DIR`, with `extra` arguments.
+fn import_command(file: &Path, dir: &Path, reporters: &str, extra: &[&str]) -> Command {
+    let mut c = Command::new(BIN);
+    c.args(["import", file.to_str().unwrap(), "--quiet", "--reporters"])
         .arg(reporters)
         .arg("--data-dir")
         .arg(dir)
-        .env_remove("VLMFUSE_CONFIG")
-        .output()
-        .unwrap()
+        .args(extra)
+        .env_remove("VLMFUSE_CONFIG");
+    c
+}
+
+/// Rounds stored in a data directory (0 when there is none yet).
+fn stored_rounds(dir: &Path) -> u64 {
+    vlmfuse_store::Store::open_read_only(dir)
+        .and_then(|s| s.counts())
+        .map_or(0, |c| c.0)
 }
 
 /// `vlmfuse import` of the first part of a rounds file, then the rest through the service:
@@ -403,19 +415,11 @@ fn an_interrupted_import_stores_nothing() {
     let file = tmp.path().join("rounds.jsonl");
     write_jsonl(&file, &rounds);
     let dir = tmp.path().join("data");
-    let mut child = Command::new(BIN)
-        .args(["import", file.to_str().unwrap(), "--quiet", "--chunk", "50"])
-        .args(["--reporters", &reporters, "--data-dir"])
-        .arg(&dir)
-        .env_remove("VLMFUSE_CONFIG")
+    let mut child = import_command(&file, &dir, &reporters, &["--chunk", "50"])
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
-    let stored = |dir: &Path| {
-        vlmfuse_store::Store::open_read_only(dir)
-            .and_then(|s| s.counts())
-            .map_or(0, |c| c.0)
-    };
+    let stored = stored_rounds;
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
     while stored(&dir) == 0 {
         assert!(
@@ -455,11 +459,7 @@ fn a_bad_last_line_rolls_back_the_chunks_before_it() {
     text.push_str("{\"context\": [1.0], \"reports\": {}}\n");
     std::fs::write(&file, text).unwrap();
     let dir = tmp.path().join("data");
-    let o = Command::new(BIN)
-        .args(["import", file.to_str().unwrap(), "--quiet", "--chunk", "50"])
-        .args(["--reporters", &reporters, "--data-dir"])
-        .arg(&dir)
-        .env_remove("VLMFUSE_CONFIG")
+    let o = import_command(&file, &dir, &reporters, &["--chunk", "50"])
         .output()
         .unwrap();
     let err = String::from_utf8_lossy(&o.stderr);
@@ -467,8 +467,5 @@ fn a_bad_last_line_rolls_back_the_chunks_before_it() {
     for want in ["line 3001:", "1 bad line(s)", "nothing was imported"] {
         assert!(err.contains(want), "{want:?} missing from: {err}");
     }
-    let stored = vlmfuse_store::Store::open_read_only(&dir)
-        .and_then(|s| s.counts())
-        .map_or(0, |c| c.0);
-    assert_eq!(stored, 0, "a refused file left rounds stored");
+    assert_eq!(stored_rounds(&dir), 0, "a refused file left rounds stored");
 }

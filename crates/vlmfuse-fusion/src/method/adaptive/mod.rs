@@ -116,16 +116,23 @@ struct RhoCache {
 }
 
 impl RhoCache {
-    fn get(&mut self, version: u64, coalition: &[usize]) -> Option<&Vec<f64>> {
+    /// The coalition's correlations at `version`: kept ones, or `compute`'s, then kept.
+    fn get_or(
+        &mut self,
+        version: u64,
+        coalition: &[usize],
+        compute: impl FnOnce() -> Vec<f64>,
+    ) -> Vec<f64> {
         if self.version != version {
             self.version = version;
             self.entries.clear();
-            return None;
         }
-        self.entries
-            .iter()
-            .find(|(c, _)| c == coalition)
-            .map(|(_, r)| r)
+        if let Some((_, r)) = self.entries.iter().find(|(c, _)| c == coalition) {
+            return r.clone();
+        }
+        let r = compute();
+        self.entries.push((coalition.to_vec(), r.clone()));
+        r
     }
 }
 
@@ -682,22 +689,9 @@ impl Adaptive {
                 prior[k] = (pa + pi_pos[k]) / (pa + pb + (pi_mass + pi_known[k]));
             }
         }
-        let cached = match rho_cache {
-            Some(c) => match c.get(self.rho_version, &coalition) {
-                Some(r) => Ok(r.clone()),
-                None => Err(Some(c)),
-            },
-            None => Err(None),
-        };
-        let rho = match cached {
-            Ok(r) => r,
-            Err(cache) => {
-                let r = self.rho(cx, &coalition);
-                if let Some(c) = cache {
-                    c.entries.push((coalition.clone(), r.clone()));
-                }
-                r
-            }
+        let rho = match rho_cache {
+            Some(c) => c.get_or(self.rho_version, &coalition, || self.rho(cx, &coalition)),
+            None => self.rho(cx, &coalition),
         };
         let mut rep = Vec::with_capacity(p * l);
         for &i in &coalition {

@@ -190,14 +190,13 @@ impl Pool {
         // What the round's inference reads of its neighbours next (soft truths, reports),
         // for every candidate: the neighbours are among them.
         self.prefetch(cand.iter().copied());
-        let mut top = Vec::with_capacity(cand.len());
         let mut rev = Vec::new();
         // Without decay, entering a list is a cosine test against its flat copy of the worst
         // kept cosine (as in the exact scan): no pointer chase, no `powf`, per candidate; and
         // ranking by weight is ranking by cosine, so only the kept neighbours' weights are
         // computed.
         let by_sim = self.half_life <= 0.0 && self.worst_sim.len() == len;
-        if by_sim {
+        let top = if by_sim {
             let mut best: Vec<(usize, f64)> = Vec::with_capacity(cand.len());
             for &j in &cand {
                 let sim = self.bank.sim(x, j);
@@ -206,16 +205,9 @@ impl Pool {
                 }
                 best.push((j, sim));
             }
-            if m > 0 && best.len() > m {
-                let cmp = |a: &(usize, f64), b: &(usize, f64)| {
-                    b.1.total_cmp(&a.1)
-                        .then(self.bank.seq(a.0).cmp(&self.bank.seq(b.0)))
-                };
-                best.select_nth_unstable_by(m - 1, cmp);
-                best.truncate(m);
-            }
-            top.extend(best.into_iter().map(|(j, s)| self.nb_at(j, s, at)));
+            self.best_by_sim(best, m, at)
         } else {
+            let mut top = Vec::with_capacity(cand.len());
             for &j in &cand {
                 let sim = self.bank.sim(x, j);
                 top.push(self.nb_at(j, sim, at));
@@ -223,8 +215,9 @@ impl Pool {
                     rev.push((j, sim));
                 }
             }
-        }
-        self.rank(&mut top, m);
+            self.rank(&mut top, m);
+            top
+        };
         Scan {
             pool_len: len,
             epoch: self.epoch,
@@ -531,6 +524,29 @@ impl Pool {
         v.sort_by(cmp);
     }
 
+    /// Without decay, ranking by weight is ranking by cosine (ties to the older round): the
+    /// `m` best of these `(position, cosine)` pairs by cosine, with their weights, ranked. Only
+    /// the kept ones' weights are computed.
+    fn best_by_sim(&self, mut best: Vec<(usize, f64)>, m: usize, at: u64) -> Vec<Nb> {
+        if m == 0 {
+            return Vec::new();
+        }
+        if best.len() > m {
+            let cmp = |a: &(usize, f64), b: &(usize, f64)| {
+                b.1.total_cmp(&a.1)
+                    .then(self.bank.seq(a.0).cmp(&self.bank.seq(b.0)))
+            };
+            best.select_nth_unstable_by(m - 1, cmp);
+            best.truncate(m);
+        }
+        let mut top: Vec<Nb> = best
+            .into_iter()
+            .map(|(j, s)| self.nb_at(j, s, at))
+            .collect();
+        self.rank(&mut top, m);
+        top
+    }
+
     /// Whether a newcomer at clock `at` with cosine `sim` to entry `j` may enter `j`'s list. A
     /// filter only: `insert` settles exact ties by age.
     fn may_enter(&self, j: usize, sim: f64, at: u64) -> bool {
@@ -562,21 +578,7 @@ impl Pool {
                 }
                 best.push((j, s));
             }
-            if m > 0 {
-                let cmp = |a: &(usize, f64), b: &(usize, f64)| {
-                    b.1.total_cmp(&a.1)
-                        .then(self.bank.seq(a.0).cmp(&self.bank.seq(b.0)))
-                };
-                if best.len() > m {
-                    best.select_nth_unstable_by(m - 1, cmp);
-                    best.truncate(m);
-                }
-                top = best
-                    .into_iter()
-                    .map(|(j, s)| self.nb_at(j, s, at))
-                    .collect();
-                self.rank(&mut top, m);
-            }
+            top = self.best_by_sim(best, m, at);
         } else {
             for j in 0..len {
                 let s = sim(j);
