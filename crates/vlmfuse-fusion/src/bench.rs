@@ -247,6 +247,9 @@ pub struct FuseFeedbackTimes {
     pub top50_us: f64,
     /// Seconds it took to fill the bank.
     pub fill_s: f64,
+    /// Per unlabelled round (infer, then observe: the round is stored and never labelled), in
+    /// microseconds, sorted ascending; timed after the labelled rounds, on the same engine.
+    pub unlabelled_us: Vec<f64>,
 }
 
 impl FuseFeedbackTimes {
@@ -257,6 +260,10 @@ impl FuseFeedbackTimes {
     /// The `p`-quantile (0..=1) of the latencies, nearest rank.
     pub fn percentile_us(&self, p: f64) -> f64 {
         percentile(&self.latencies_us, p)
+    }
+
+    pub fn unlabelled_mean_us(&self) -> f64 {
+        self.unlabelled_us.iter().sum::<f64>() / self.unlabelled_us.len().max(1) as f64
     }
 }
 
@@ -297,6 +304,17 @@ pub fn fuse_feedback(
         parts.apply += times.apply;
     }
     lat.sort_by(f64::total_cmp);
+    // Rounds that are never labelled: under `paper` an inference against the bank; under
+    // `adaptive` the inference, then the round joins the pool and the EM chunk runs.
+    let mut unlabelled_us = Vec::with_capacity(rounds);
+    for t in 0..rounds {
+        let s = synth.round();
+        let t0 = Instant::now();
+        let inf = engine.infer(&s.round);
+        engine.observe((bank + rounds + t) as u64, &s.round, &inf)?;
+        unlabelled_us.push(t0.elapsed().as_secs_f64() * 1e6);
+    }
+    unlabelled_us.sort_by(f64::total_cmp);
     let n = rounds.max(1) as u32;
     Ok(FuseFeedbackTimes {
         latencies_us: lat,
@@ -308,6 +326,7 @@ pub fn fuse_feedback(
         },
         top50_us: scan.as_secs_f64() / f64::from(n) * 1e6,
         fill_s,
+        unlabelled_us,
     })
 }
 

@@ -153,7 +153,7 @@ pub struct ReporterStats {
 /// the methods' state). A stored copy written under another layout is not read back: the store
 /// then replays the events instead. Bump it with any change to a field of the engine or of the
 /// state it owns; the `layout_is_pinned` test fails until it is bumped and its digest updated.
-pub const ENGINE_LAYOUT: u32 = 5;
+pub const ENGINE_LAYOUT: u32 = 6;
 
 /// The engine: shared state plus the configured method's own. Serialisable so that the store
 /// can keep a snapshot and replay only the events after it; a snapshot read back is the very
@@ -282,16 +282,17 @@ impl Engine {
         self.method.neighbour_recall(contexts, self.labelled())
     }
 
-    /// Whether the decisions served now are majority vote's: `adaptive`'s vote fallback, until
-    /// the model has beaten the vote on the labelled rounds. Always false under `paper`.
-    pub fn serving_vote(&self) -> bool {
-        self.method.serving_vote(&self.ctx())
+    /// The predictor deciding rounds now under `adaptive` (docs/METHOD.md §3): the whole-pool
+    /// Dawid–Skene, the context-aware model or majority vote. `None` under `paper`, whose one
+    /// predictor is the method itself.
+    pub fn serving(&self) -> Option<crate::method::adaptive::Predictor> {
+        self.method.serving(&self.ctx())
     }
 
-    /// The scores the vote fallback decides on (`adaptive`); `None` under `paper`, which always
-    /// serves its model.
-    pub fn gate_scores(&self) -> Option<crate::method::adaptive::GateScores> {
-        self.method.gate_scores()
+    /// The candidates' recent scores the choice of [`Engine::serving`] is made on (`adaptive`);
+    /// `None` under `paper`.
+    pub fn candidate_scores(&self) -> Option<Vec<crate::method::adaptive::CandidateScore>> {
+        self.method.candidate_scores(&self.ctx())
     }
     pub fn ontology(&self) -> &Ontology {
         &self.ontology

@@ -28,7 +28,8 @@ pub use engine::{
 };
 pub use error::FusionError;
 pub use method::adaptive::{
-    AdaptiveConfig, GateScores, Guardrail, PredictorScore, Reputation, Scan, SoftTruth, WeightNorm,
+    AdaptiveConfig, CandidateScore, Guardrail, Predictor, Reputation, Scan, Serve, SoftTruth,
+    WeightNorm,
 };
 pub use ontology::{Label, Ontology};
 /// docs/PAPER-METHOD.md §5's multiplicative update, [`reputation::multiplicative`].

@@ -6,7 +6,9 @@
 mod common;
 
 use common::Lcg;
-use vlmfuse_fusion::{Engine, FusionConfig, Inference, LabelledRound, Method, Ontology, Round};
+use vlmfuse_fusion::{
+    Engine, FusionConfig, Inference, LabelledRound, Method, Ontology, Predictor, Round, Serve,
+};
 
 /// One event of a stream: context, presence, reports `n * L`, and the truth if labelled.
 type Event = (Vec<f64>, Vec<bool>, Vec<u8>, Option<Vec<u8>>);
@@ -131,8 +133,15 @@ fn unlabelled_rounds_teach_adaptive_and_not_paper() {
     );
 }
 
+/// Majority vote of one round's label `k`.
+fn vote_of(present: &[bool], reports: &[u8], l: usize, k: usize) -> bool {
+    let members: Vec<usize> = (0..present.len()).filter(|&i| present[i]).collect();
+    let yes = members.iter().filter(|&&i| reports[i * l + k] != 0).count();
+    2 * yes > members.len()
+}
+
 #[test]
-fn with_no_label_it_votes_instead_of_switching_every_label_on() {
+fn with_no_label_dawid_skene_serves_and_starts_as_the_vote() {
     let l = Ontology::paper().len();
     let events: Vec<_> = stream(9, 60, l)
         .into_iter()
@@ -140,7 +149,29 @@ fn with_no_label_it_votes_instead_of_switching_every_label_on() {
         .collect();
     let (e, infs) = run(&adaptive(), &events);
     assert_eq!(e.labelled(), 0);
-    assert!(e.serving_vote());
+    assert_eq!(e.serving(), Some(Predictor::DawidSkene));
+    // Before anything is observed every reporter has the same cold reliabilities: the first
+    // round is decided as majority vote decides it, a tie off.
+    let (_, present, reports, _) = &events[0];
+    for k in 0..l {
+        assert_eq!(infs[0].pred[k] != 0, vote_of(present, reports, l, k), "label {k}");
+    }
+    // Never every label on.
+    assert!(infs.iter().all(|inf| inf.pred.iter().any(|&b| b == 0)));
+}
+
+#[test]
+fn under_vote_fallback_with_no_label_it_votes_instead_of_switching_every_label_on() {
+    let l = Ontology::paper().len();
+    let events: Vec<_> = stream(9, 60, l)
+        .into_iter()
+        .map(|(c, p, r, _)| (c, p, r, None))
+        .collect();
+    let mut cfg = adaptive();
+    cfg.adaptive.serve = Serve::VoteFallback;
+    let (e, infs) = run(&cfg, &events);
+    assert_eq!(e.labelled(), 0);
+    assert_eq!(e.serving(), Some(Predictor::MajorityVote));
     for ((_, present, reports, _), inf) in events.iter().zip(&infs) {
         for k in 0..l {
             let members: Vec<usize> = (0..3).filter(|&i| present[i]).collect();

@@ -482,24 +482,37 @@ fn engine_bench(args: &BenchArgs) -> anyhow::Result<()> {
     let l = Ontology::paper().len();
     println!(
         "fuse-then-feedback per round (infer [+ observe] + Shapley credit + reputation update + \
-         bank, window and threshold refit), d = {}, n = {}, L = {l}, one core",
+         bank, window and threshold refit), then as many rounds that are never labelled (infer + \
+         observe), d = {}, n = {}, L = {l}, one core",
         args.dim, args.reporters
     );
     println!(
-        "{:>9} {:>9} {:>12} {:>12} {:>12} {:>14} {:>10} {:>9}",
-        "bank", "method", "mean (us)", "p50 (us)", "p95 (us)", "top-50 (us)", "fill (s)", "ratio"
+        "{:>9} {:>9} {:>12} {:>12} {:>12} {:>14} {:>10} {:>9} {:>16} {:>9}",
+        "bank",
+        "method",
+        "mean (us)",
+        "p50 (us)",
+        "p95 (us)",
+        "top-50 (us)",
+        "fill (s)",
+        "ratio",
+        "unlabelled (us)",
+        "ratio"
     );
     let parts = std::env::var_os("VLMFUSE_BENCH_PARTS").is_some();
     for &bank in &args.banks {
         let mut paper_mean = f64::NAN;
+        let mut paper_unlabelled = f64::NAN;
         for method in [Method::Paper, Method::Adaptive] {
             let t = fuse_feedback(method, bank, args.dim, args.reporters, args.rounds)?;
             let mean = t.mean_us();
+            let unlabelled = t.unlabelled_mean_us();
             if method == Method::Paper {
                 paper_mean = mean;
+                paper_unlabelled = unlabelled;
             }
             println!(
-                "{:>9} {:>9} {:>12.1} {:>12.1} {:>12.1} {:>14.1} {:>10.2} {:>8.2}x",
+                "{:>9} {:>9} {:>12.1} {:>12.1} {:>12.1} {:>14.1} {:>10.2} {:>8.2}x {:>16.1} {:>8.2}x",
                 bank,
                 method.name(),
                 mean,
@@ -507,7 +520,9 @@ fn engine_bench(args: &BenchArgs) -> anyhow::Result<()> {
                 t.percentile_us(0.95),
                 t.top50_us,
                 t.fill_s,
-                mean / paper_mean
+                mean / paper_mean,
+                unlabelled,
+                unlabelled / paper_unlabelled
             );
             if parts {
                 let p = t.mean_parts;

@@ -38,9 +38,16 @@ pub struct FuseOut {
     /// The fusion method that produced the posteriors: `paper` (PAPER-METHOD.md) or `adaptive`
     /// (docs/METHOD.md).
     pub method: &'static str,
-    /// How the labels were decided: `model` (posterior against the threshold) or
-    /// `majority_vote` (`adaptive`'s fallback until the model beats the vote on labelled rounds).
+    /// How the labels were decided (docs/METHOD.md §3): `model` (the method's posterior against
+    /// its threshold; always under `paper`), `dawid_skene` (the whole-pool Dawid–Skene, which
+    /// `adaptive` serves before labels say otherwise) or `majority_vote`.
     pub decision: &'static str,
+    /// Label id -> the predictor that decided it (one predictor decides a whole round).
+    pub decided_by: Ordered<&'static str>,
+    /// `adaptive` only: the deciding predictor's recent score on the labelled rounds, which the
+    /// switch chose it on.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub decision_score: Option<vlmfuse_fusion::CandidateScore>,
     pub threshold: f64,
     /// Per-label thresholds, only in the per-label threshold mode.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -90,6 +97,8 @@ pub fn fuse_out(engine: &Engine, seq: u64, id: Option<String>, inf: &Inference) 
         posteriors: Ordered((0..l).map(|k| (label(k), inf.q[k])).collect()),
         method: engine.method().name(),
         decision: serving_predictor(engine),
+        decided_by: Ordered((0..l).map(|k| (label(k), serving_predictor(engine))).collect()),
+        decision_score: serving_score(engine),
         threshold: inf.thresholds.first().copied().unwrap_or(0.5),
         thresholds: (engine.threshold().mode() == ThresholdMode::PerLabel)
             .then(|| Ordered((0..l).map(|k| (label(k), inf.thresholds[k])).collect())),
@@ -215,13 +224,18 @@ pub fn feedback_out(engine: &Engine, done: &FeedbackDone) -> FeedbackOut {
 }
 
 /// The predictor that decides rounds now, by the name responses, `/v1/state` and the operator
-/// page give it: `majority_vote` while `adaptive`'s vote fallback serves, else `model`.
+/// page give it (`model` under `paper`).
 pub fn serving_predictor(engine: &Engine) -> &'static str {
-    if engine.serving_vote() {
-        "majority_vote"
-    } else {
-        "model"
-    }
+    engine.serving().map_or("model", |p| p.name())
+}
+
+/// The serving predictor's recent score (`adaptive` with a gate; `None` otherwise).
+pub fn serving_score(engine: &Engine) -> Option<vlmfuse_fusion::CandidateScore> {
+    let now = engine.serving()?;
+    engine
+        .candidate_scores()?
+        .into_iter()
+        .find(|c| c.predictor == now)
 }
 
 /// `GET /v1/state`.
@@ -243,19 +257,24 @@ pub struct StateOut {
     /// `[fusion.adaptive] pool_max`); absent under `paper`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub pool: Option<PoolOut>,
-    /// Which predictor serves every label now, and (under `adaptive`) the scores its vote
-    /// fallback decides on.
+    /// Which predictor serves every label now, and (under `adaptive`) the candidates' recent
+    /// scores it is chosen on.
     pub serving: ServingOut,
 }
 
 #[derive(Serialize)]
 pub struct ServingOut {
-    /// `model` or `majority_vote` (the same as each response's `decision`).
+    /// `dawid_skene`, `model` or `majority_vote` (the same as each response's `decision`).
     pub predictor: &'static str,
-    /// `adaptive` only: the model's and the vote's Hamming errors and micro-F1 over the
-    /// labelled rounds; the vote serves until the model has fewer errors and no lower F1.
+    /// The `[fusion.adaptive] serve` rule in force (`switch`, `vote-fallback`, `model`);
+    /// absent under `paper`.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub scores: Option<vlmfuse_fusion::GateScores>,
+    pub rule: Option<&'static str>,
+    /// `adaptive` only: each candidate's recent score on the labelled rounds (under `switch`
+    /// discounted by `switch_discount`; under `vote-fallback` over every labelled round), which
+    /// decides who serves (docs/METHOD.md §3).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub scores: Option<Vec<vlmfuse_fusion::CandidateScore>>,
 }
 
 #[derive(Serialize)]
@@ -359,7 +378,12 @@ pub fn state_out(eng: &Engine, rounds: u64) -> StateOut {
         dim: eng.dim(),
         serving: ServingOut {
             predictor: serving_predictor(eng),
-            scores: eng.gate_scores(),
+            rule: eng.serving().map(|_| match eng.config().adaptive.serve {
+                vlmfuse_fusion::Serve::Switch => "switch",
+                vlmfuse_fusion::Serve::VoteFallback => "vote-fallback",
+                vlmfuse_fusion::Serve::Model => "model",
+            }),
+            scores: eng.candidate_scores(),
         },
     }
 }

@@ -70,18 +70,20 @@ impl MethodState {
         }
     }
 
-    /// `adaptive`'s gate: the model's and the vote's scores. `None` under `paper`.
-    pub fn gate_scores(&self) -> Option<adaptive::GateScores> {
+    /// `adaptive`'s candidates' recent scores that decide who serves. `None` under `paper`.
+    pub fn candidate_scores(&self, cx: &Ctx) -> Option<Vec<adaptive::CandidateScore>> {
         match self {
             MethodState::Paper(_) => None,
-            MethodState::Adaptive(a) => Some(a.gate_scores()),
+            MethodState::Adaptive(a) => Some(a.candidate_scores(cx)),
         }
     }
 
-    pub fn serving_vote(&self, cx: &Ctx) -> bool {
+    /// The predictor deciding the next round under `adaptive`; `None` under `paper` (whose one
+    /// predictor is the method itself).
+    pub fn serving(&self, cx: &Ctx) -> Option<adaptive::Predictor> {
         match self {
-            MethodState::Paper(_) => false,
-            MethodState::Adaptive(a) => a.voting(cx),
+            MethodState::Paper(_) => None,
+            MethodState::Adaptive(a) => Some(a.serving(cx)),
         }
     }
 

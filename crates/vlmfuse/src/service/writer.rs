@@ -265,16 +265,17 @@ pub fn publish_gauges(engine: &Engine) {
         metrics::gauge!("vlmfuse_pool_entries", "kind" => "labelled").set(labelled as f64);
         metrics::gauge!("vlmfuse_pool_entries", "kind" => "unlabelled").set(unlabelled as f64);
     }
-    // Which predictor serves (1) and, under `adaptive`, the scores that decide it.
-    let vote = engine.serving_vote();
-    metrics::gauge!("vlmfuse_serving", "predictor" => "model").set(f64::from(u8::from(!vote)));
-    metrics::gauge!("vlmfuse_serving", "predictor" => "majority_vote")
-        .set(f64::from(u8::from(vote)));
-    if let Some(g) = engine.gate_scores() {
-        for (p, s) in [("model", g.model), ("majority_vote", g.vote)] {
-            metrics::gauge!("vlmfuse_predictor_errors", "predictor" => p).set(s.errors as f64);
-            metrics::gauge!("vlmfuse_predictor_micro_f1", "predictor" => p).set(s.micro_f1);
-        }
+    // Which predictor serves (1, the others 0) and, under `adaptive`, the scores that decide it.
+    let now = crate::wire::serving_predictor(engine);
+    for p in vlmfuse_fusion::Predictor::ALL {
+        metrics::gauge!("vlmfuse_serving", "predictor" => p.name())
+            .set(f64::from(u8::from(p.name() == now)));
+    }
+    for s in engine.candidate_scores().unwrap_or_default() {
+        let p = s.predictor.name();
+        metrics::gauge!("vlmfuse_predictor_errors", "predictor" => p).set(s.errors);
+        metrics::gauge!("vlmfuse_predictor_loss", "predictor" => p).set(s.loss);
+        metrics::gauge!("vlmfuse_predictor_micro_f1", "predictor" => p).set(s.micro_f1);
     }
 }
 

@@ -72,6 +72,23 @@ pub enum SoftTruth {
     Calibrated,
 }
 
+/// Which predictor decides a round.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Serve {
+    /// The candidate (whole-pool Dawid–Skene, the context-aware model, majority vote) with the
+    /// lowest recent loss on the labelled rounds, scored before each label is learned
+    /// (docs/METHOD.md §3; `switch_*`). Dawid–Skene until labels say otherwise.
+    #[default]
+    Switch,
+    /// Majority vote until the model's decisions over every labelled round have fewer Hamming
+    /// errors than the vote's and a micro-F1 no lower; then the model (the rule before the
+    /// switch: it served the vote for most rounds on data it was not tuned on).
+    VoteFallback,
+    /// The model always.
+    Model,
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct AdaptiveConfig {
@@ -185,11 +202,19 @@ pub struct AdaptiveConfig {
     /// Smallest Platt slope: calibration may flatten a logit, never invert it.
     pub calib_min_slope: f64,
 
-    /// Serve majority vote (as the cold model's posterior) until the model's own decisions,
-    /// scored on each labelled round before its label is learned, have made fewer Hamming
-    /// errors than the vote's with a micro-F1 no lower. With no labels nothing says the learned reliabilities beat a
-    /// vote; after a few dozen labels the comparison does.
-    pub vote_fallback: bool,
+    /// Which predictor decides a round: `switch` (the default), `vote-fallback` or `model`.
+    pub serve: Serve,
+    /// `switch`: the factor each candidate's loss so far is multiplied by before a labelled
+    /// round adds to it (1: every round counts forever; 0.99: about the last 100).
+    pub switch_discount: f64,
+    /// `switch`: what a missed label costs, against 1 for a false alarm.
+    pub switch_fn_cost: f64,
+    /// `switch`: how much lower another candidate's loss must be than the serving one's before
+    /// it serves (hysteresis: no flipping on ties and noise).
+    pub switch_margin: f64,
+    /// The whole-pool Dawid–Skene's pseudo-observations pulling each label's reliabilities
+    /// toward the reporter's pooled over labels (docs/METHOD.md §3).
+    pub ds_label_strength: f64,
     /// Decision threshold until `threshold_min_rounds` rounds are labelled: the grid point just
     /// above 1/2, so a label is on when its posterior is MORE than one half (the Bayes rule for
     /// Hamming loss on calibrated posteriors, and majority vote's "more than half" on a tie).
@@ -245,7 +270,11 @@ impl Default for AdaptiveConfig {
             calib_pooled_prior: 5.0,
             calib_newton_steps: 1,
             calib_min_slope: 0.05,
-            vote_fallback: true,
+            serve: Serve::Switch,
+            switch_discount: 0.99,
+            switch_fn_cost: 1.5,
+            switch_margin: 3.0,
+            ds_label_strength: 30.0,
             threshold_initial: 0.505,
             threshold_min_rounds: 20,
             threshold_shrink: 100.0,
@@ -274,7 +303,7 @@ impl AdaptiveConfig {
             threshold_initial,
             threshold_min_rounds,
             threshold_shrink: 0.0,
-            vote_fallback: false,
+            serve: Serve::Model,
             compact_contexts: false,
             ann_min: 0,
             ..Self::default()
@@ -344,18 +373,27 @@ impl AdaptiveConfig {
             return Err("calib_min_slope must be finite and >= 0".into());
         }
         nonneg(self.threshold_shrink, "threshold_shrink")?;
-        if self.vote_fallback {
+        if !(self.switch_discount > 0.0 && self.switch_discount <= 1.0) {
+            return Err(format!(
+                "switch_discount must lie in (0, 1], got {}",
+                self.switch_discount
+            ));
+        }
+        nonneg(self.switch_fn_cost, "switch_fn_cost")?;
+        nonneg(self.switch_margin, "switch_margin")?;
+        nonneg(self.ds_label_strength, "ds_label_strength")?;
+        if self.serve != Serve::Model {
             // sigmoid(ln(tpr / fpr)): the vote's posterior with a one-vote majority.
             let top = self.prior_tpr / (self.prior_tpr + self.prior_fpr);
             if !(self.threshold_initial > 0.5 && self.threshold_initial < top) {
                 return Err(format!(
-                    "with vote_fallback, threshold_initial must lie in (0.5, {top:.3}) so that the \
+                    "serving the vote, threshold_initial must lie in (0.5, {top:.3}) so that the \
                      vote's posterior decides as majority vote does, got {}",
                     self.threshold_initial
                 ));
             }
             if self.prior_tpr <= self.prior_fpr {
-                return Err("with vote_fallback, prior_tpr must exceed prior_fpr".into());
+                return Err("serving the vote, prior_tpr must exceed prior_fpr".into());
             }
         }
         if !(0.0..=1.0).contains(&self.threshold_initial) {

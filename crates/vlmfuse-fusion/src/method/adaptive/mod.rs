@@ -20,10 +20,13 @@
 pub mod ann;
 pub mod calibrate;
 pub mod config;
+pub mod ds;
+pub mod gate;
 pub mod pool;
 
 pub use calibrate::Calibrator;
-pub use config::{AdaptiveConfig, Guardrail, Reputation, SoftTruth, WeightNorm};
+pub use config::{AdaptiveConfig, Guardrail, Reputation, Serve, SoftTruth, WeightNorm};
+pub use gate::{CandidateScore, Predictor, Switch};
 pub use pool::{Pool, Scan};
 
 use super::Ctx;
@@ -90,10 +93,14 @@ pub struct Adaptive {
     cursor: usize,
     /// The credits the reputation update remembers.
     credit: CreditMemory,
-    /// Decisions of the model and of majority vote scored on the labelled rounds (the vote
-    /// fallback serves the vote until the model has done better on both counts).
+    /// Decisions of the model and of majority vote scored on the labelled rounds (under
+    /// `serve = "vote-fallback"` the vote serves until the model has done better on both counts).
     model_score: Tally,
     vote_score: Tally,
+    /// The whole-pool Dawid–Skene's sums (kept under `serve = "switch"`).
+    ds: ds::GlobalDs,
+    /// Which candidate serves under `serve = "switch"`, and their recent losses.
+    switch: Switch,
     /// Fitted on the calibrated posteriors, with this method's own cold-start rule.
     threshold: ThresholdFitter,
     /// The paper method's window of error correlations, kept only under `guardrail = "window"`.
@@ -134,23 +141,6 @@ impl RhoCache {
         self.entries.push((coalition.to_vec(), r.clone()));
         r
     }
-}
-
-/// One predictor's decisions on the labelled rounds, as the vote fallback counts them: every
-/// known label of every labelled round, each decided as it was served.
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
-pub struct PredictorScore {
-    /// Hamming errors (false positives plus false negatives).
-    pub errors: u64,
-    /// Micro-F1 (1 with no positive at all).
-    pub micro_f1: f64,
-}
-
-/// The model's and majority vote's scores, which decide who serves (docs/METHOD.md §5).
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
-pub struct GateScores {
-    pub model: PredictorScore,
-    pub vote: PredictorScore,
 }
 
 /// True positives, false positives and false negatives of a stream of decisions.
@@ -242,6 +232,8 @@ impl Adaptive {
             credit: CreditMemory::new(n),
             model_score: Tally::default(),
             vote_score: Tally::default(),
+            ds: ds::GlobalDs::new(n, l),
+            switch: Switch::default(),
             threshold: ThresholdFitter::new(&tcfg, l),
             corr: (a.guardrail == Guardrail::Window)
                 .then(|| CorrWindow::new(n, l, cfg.corr_window)),
@@ -483,6 +475,9 @@ impl Adaptive {
         let worn = g.updates > self.pool.len().max(64);
         if moved || worn || (h > 0.0 && (cx.labelled - g.base) as f64 > REBASE_HALF_LIVES * h) {
             self.global_rebuild(cx);
+        }
+        if Self::keeps_ds(cx) {
+            self.ds.maybe_rebuild(&self.pool);
         }
     }
 
@@ -807,36 +802,96 @@ impl Adaptive {
             cx.labelled,
             None,
         );
-        let (q, thresholds) = if self.voting(cx) {
-            (
-                self.vote_posterior(cx, round),
-                vec![cx.cfg.adaptive.threshold_initial; cx.l],
-            )
-        } else {
-            (self.posterior(cx, &signals), self.thresholds(cx))
+        let initial = || vec![cx.cfg.adaptive.threshold_initial; cx.l];
+        let (q, thresholds) = match self.serving(cx) {
+            Predictor::MajorityVote => (self.vote_posterior(cx, round), initial()),
+            Predictor::DawidSkene => (
+                self.ds_params(cx)
+                    .posterior(&round.present, &round.reports, cx.cfg.eps),
+                initial(),
+            ),
+            Predictor::Model => (self.posterior(cx, &signals), self.thresholds(cx)),
         };
         Inference::decide(signals, q, thresholds, cx.w, Some(scan))
     }
 
-    /// The two predictors' scores on the labelled rounds the gate has counted (the vote
-    /// fallback's evidence, [`Self::voting`]).
-    pub fn gate_scores(&self) -> GateScores {
-        let score = |t: &Tally| PredictorScore {
-            errors: t.errors(),
-            micro_f1: t.f1(),
-        };
-        GateScores {
-            model: score(&self.model_score),
-            vote: score(&self.vote_score),
+    /// The candidates' recent scores that decide who serves: under `switch` all three
+    /// (discounted), under `vote-fallback` the model's and the vote's over every labelled round
+    /// (the loss is then the error count), under `model` none.
+    pub fn candidate_scores(&self, cx: &Ctx) -> Vec<CandidateScore> {
+        match cx.cfg.adaptive.serve {
+            Serve::Switch => self.switch.scores(),
+            Serve::VoteFallback => [
+                (Predictor::Model, &self.model_score),
+                (Predictor::MajorityVote, &self.vote_score),
+            ]
+            .into_iter()
+            .map(|(p, t)| CandidateScore {
+                predictor: p,
+                loss: t.errors() as f64,
+                errors: t.errors() as f64,
+                micro_f1: t.f1(),
+            })
+            .collect(),
+            Serve::Model => Vec::new(),
         }
     }
 
-    /// Whether the vote fallback is serving majority vote: until the model's decisions, over the
-    /// labelled rounds, have made strictly fewer Hamming errors than the vote's AND have a
-    /// micro-F1 at least the vote's (so always with no labels, and on a tie).
-    pub fn voting(&self, cx: &Ctx) -> bool {
-        let (m, v) = (&self.model_score, &self.vote_score);
-        cx.cfg.adaptive.vote_fallback && !(m.errors() < v.errors() && m.f1() >= v.f1())
+    /// The predictor that decides the next round (docs/METHOD.md §3).
+    pub fn serving(&self, cx: &Ctx) -> Predictor {
+        match cx.cfg.adaptive.serve {
+            Serve::Switch => self.switch.serving(),
+            Serve::Model => Predictor::Model,
+            Serve::VoteFallback => {
+                // Until the model's decisions, over the labelled rounds, have made strictly
+                // fewer Hamming errors than the vote's AND have a micro-F1 at least the vote's
+                // (so always with no labels, and on a tie).
+                let (m, v) = (&self.model_score, &self.vote_score);
+                if m.errors() < v.errors() && m.f1() >= v.f1() {
+                    Predictor::Model
+                } else {
+                    Predictor::MajorityVote
+                }
+            }
+        }
+    }
+
+    /// Whether the whole-pool Dawid–Skene is kept (it serves only under `switch`).
+    fn keeps_ds(cx: &Ctx) -> bool {
+        cx.cfg.adaptive.serve == Serve::Switch
+    }
+
+    /// The whole-pool Dawid–Skene as its sums stand.
+    fn ds_params(&self, cx: &Ctx) -> ds::DsParams {
+        self.ds.params(&cx.cfg.adaptive, cx.cfg.eps)
+    }
+
+    /// E-steps of the whole-pool Dawid–Skene for these entries (one set of parameters for the
+    /// batch, then the sums follow each entry's new soft truths).
+    fn ds_esteps(&mut self, cx: &Ctx, order: &[usize]) {
+        if !Self::keeps_ds(cx) || order.is_empty() {
+            return;
+        }
+        let par = self.ds_params(cx);
+        for &pos in order {
+            if self.pool.is_labelled(pos) {
+                continue;
+            }
+            let t = par.posterior_of(&self.pool, pos, cx.cfg.eps);
+            self.ds.add(&self.pool, pos, -1.0);
+            self.pool.set_gsoft(pos, &t);
+            self.ds.add(&self.pool, pos, 1.0);
+        }
+    }
+
+    /// A new pool entry joins the whole-pool Dawid–Skene with its E-step posterior.
+    fn ds_join(&mut self, cx: &Ctx, pos: usize) {
+        if !Self::keeps_ds(cx) {
+            return;
+        }
+        let t = self.ds_params(cx).posterior_of(&self.pool, pos, cx.cfg.eps);
+        self.pool.set_gsoft(pos, &t);
+        self.ds.add(&self.pool, pos, 1.0);
     }
 
     /// The vote's posterior: `sigmoid(c (yes - no))` over the present reporters, `c =
@@ -968,6 +1023,7 @@ impl Adaptive {
             cursor = pos + 1;
         }
         self.esteps(cx, &order);
+        self.ds_esteps(cx, &order);
         if let Some(&last) = order.last() {
             self.cursor = last + 1;
         }
@@ -1010,6 +1066,7 @@ impl Adaptive {
             &scan,
         );
         self.global_add(cx, pos, 1.0);
+        self.ds_join(cx, pos);
         self.retain(cx);
         self.maybe_rebase(cx);
         self.em_chunk(cx);
@@ -1034,6 +1091,9 @@ impl Adaptive {
             .collect();
         for &pos in &out {
             self.global_add(cx, pos, -1.0);
+            if Self::keeps_ds(cx) {
+                self.ds.add(&self.pool, pos, -1.0);
+            }
         }
         let mut dead = vec![false; self.pool.len()];
         for &pos in &out {
@@ -1079,13 +1139,32 @@ impl Adaptive {
                 .collect(),
             _ => lr.q.clone(),
         };
-        if a.vote_fallback && parts.is_some() {
+        if a.serve != Serve::Model && parts.is_some() {
             let t = self.thresholds(cx);
             let vote = majority_vote(&lr.round, l);
-            for k in (0..l).filter(|&k| lr.truth[k] <= 1) {
-                let y = lr.truth[k] != 0;
-                self.model_score.add(model_q[k] >= t[k], y);
-                self.vote_score.add(vote[k] != 0, y);
+            let model: Vec<bool> = (0..l).map(|k| model_q[k] >= t[k]).collect();
+            if a.serve == Serve::VoteFallback {
+                for k in (0..l).filter(|&k| lr.truth[k] <= 1) {
+                    let y = lr.truth[k] != 0;
+                    self.model_score.add(model[k], y);
+                    self.vote_score.add(vote[k] != 0, y);
+                }
+            } else {
+                // Dawid-Skene as it stands now: it has observed the round (not its label).
+                let ds: Vec<bool> = self
+                    .ds_params(cx)
+                    .posterior(&lr.round.present, &lr.round.reports, cx.cfg.eps)
+                    .iter()
+                    .map(|&q| q >= a.threshold_initial)
+                    .collect();
+                let vote: Vec<bool> = vote.iter().map(|&v| v != 0).collect();
+                self.switch.score(
+                    &[ds, model, vote],
+                    &lr.truth,
+                    a.switch_discount,
+                    a.switch_fn_cost,
+                    a.switch_margin,
+                );
             }
         }
         self.threshold.push(&model_q, &lr.truth);
@@ -1093,8 +1172,14 @@ impl Adaptive {
             // Labels it already had, or new ones (partial feedback), or an override.
             Some(pos) => {
                 self.global_add(cx, pos, -1.0);
+                if Self::keeps_ds(cx) {
+                    self.ds.add(&self.pool, pos, -1.0);
+                }
                 self.pool.set_known(pos, &lr.truth);
                 self.global_add(cx, pos, 1.0);
+                if Self::keeps_ds(cx) {
+                    self.ds.add(&self.pool, pos, 1.0);
+                }
                 Some(pos)
             }
             None => {
@@ -1121,6 +1206,7 @@ impl Adaptive {
                     self.pool.set_known(pos, &lr.truth);
                 }
                 self.global_add(cx, pos, 1.0);
+                self.ds_join(cx, pos);
                 Some(pos)
             }
         };

@@ -53,6 +53,10 @@ pub struct Pool {
     half_life: f64,
     /// `L` soft truths per entry: the truth itself once labelled.
     soft: Vec<f64>,
+    /// `L` soft truths per entry under the whole-pool Dawid–Skene (`super::ds`), which ignores
+    /// context: the known labels' truths, else that model's E-step posterior. Kept beside
+    /// `soft` so that evictions renumber both alike.
+    gsoft: Vec<f64>,
     /// Every label's truth is known (a fully labelled entry: EM never visits it).
     labelled: Vec<bool>,
     /// Some labels' truth is known, not all (partial feedback): the entry stays with the
@@ -111,6 +115,7 @@ impl Pool {
             tau,
             half_life,
             soft: Vec::new(),
+            gsoft: Vec::new(),
             labelled: Vec::new(),
             partial: Vec::new(),
             clock: Vec::new(),
@@ -267,6 +272,7 @@ impl Pool {
             }
             if w != r {
                 self.soft.copy_within(r * l..(r + 1) * l, w * l);
+                self.gsoft.copy_within(r * l..(r + 1) * l, w * l);
                 self.labelled[w] = self.labelled[r];
                 self.partial[w] = self.partial[r];
                 self.clock[w] = self.clock[r];
@@ -275,6 +281,7 @@ impl Pool {
             w += 1;
         }
         self.soft.truncate(w * l);
+        self.gsoft.truncate(w * l);
         self.labelled.truncate(w);
         self.partial.truncate(w);
         self.clock.truncate(w);
@@ -374,6 +381,24 @@ impl Pool {
         &self.soft[pos * self.l..(pos + 1) * self.l]
     }
 
+    /// The entry's soft truths under the whole-pool Dawid–Skene.
+    pub fn gsoft(&self, pos: usize) -> &[f64] {
+        &self.gsoft[pos * self.l..(pos + 1) * self.l]
+    }
+
+    /// Sets the whole-pool Dawid–Skene soft truths of the entry's unknown labels to `t`; its
+    /// known labels keep their truth.
+    pub fn set_gsoft(&mut self, pos: usize, t: &[f64]) {
+        let l = self.l;
+        for k in 0..l {
+            self.gsoft[pos * l + k] = if self.known(pos, k) {
+                self.soft[pos * l + k]
+            } else {
+                t[k]
+            };
+        }
+    }
+
     pub fn is_labelled(&self, pos: usize) -> bool {
         self.labelled[pos]
     }
@@ -398,6 +423,7 @@ impl Pool {
         for (k, &v) in y.iter().enumerate() {
             if v <= 1 {
                 self.soft[pos * l + k] = v as f64;
+                self.gsoft[pos * l + k] = v as f64;
             }
         }
         let full: Vec<u8> = (0..l).map(|k| self.bank.truth(pos, k)).collect();
@@ -441,11 +467,10 @@ impl Pool {
     }
 
     pub fn set_label(&mut self, pos: usize, y: &[u8]) {
-        for (d, &v) in self.soft[pos * self.l..(pos + 1) * self.l]
-            .iter_mut()
-            .zip(y)
-        {
-            *d = v as f64;
+        let l = self.l;
+        for (k, &v) in y.iter().enumerate() {
+            self.soft[pos * l + k] = v as f64;
+            self.gsoft[pos * l + k] = v as f64;
         }
         if !self.labelled[pos] {
             if let Ok(i) = self.unlabelled.binary_search(&(pos as u32)) {
@@ -737,6 +762,7 @@ impl Pool {
         };
         self.bank.push(seq, context, present, reports, &truth);
         self.soft.extend_from_slice(soft);
+        self.gsoft.extend_from_slice(soft);
         self.labelled.push(labelled);
         self.partial.push(false);
         if !labelled {

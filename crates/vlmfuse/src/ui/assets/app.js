@@ -381,20 +381,27 @@
         h("td", null, swatch(colour(p, i)), p),
         h("td", { class: "num", "data-field": "count", "data-value": String(n) }, String(n)),
         h("td", { class: "num" }, total ? `${Math.round((100 * n) / total)}%` : "–"))) : [h("tr", null, h("td", { colspan: 3 }, none("no decisions yet")))]));
-      // The vote fallback's evidence (adaptive only): who serves, and the scores that decide it.
-      const gate = (st.serving && st.serving.scores) || null;
+      // The switch's evidence (adaptive only): who serves, and the candidates' recent scores.
+      const gate = (st.serving && st.serving.scores && st.serving.scores.length) ? st.serving.scores : null;
       const serving = st.serving ? st.serving.predictor : null;
+      const short = { majority_vote: "vote", dawid_skene: "Dawid–Skene", model: "model" };
       $("serving-gate").hidden = !gate;
       if (gate) {
-        $("serving-gate").tBodies[0].replaceChildren(...[["model", gate.model], ["majority_vote", gate.vote]].map(([p, sc]) =>
-          h("tr", { "data-predictor": p, class: p === serving ? "serving" : null },
-            h("td", null, p === "majority_vote" ? "vote" : p, p === serving ? " ✓" : ""),
-            h("td", { class: "num", "data-field": "errors", "data-value": String(sc.errors) }, String(sc.errors)),
-            h("td", { class: "num", "data-field": "micro_f1", "data-value": String(sc.micro_f1) }, fmt(sc.micro_f1, 3)))));
+        $("serving-gate").tBodies[0].replaceChildren(...gate.map((sc) => {
+          const p = sc.predictor;
+          return h("tr", { "data-predictor": p, class: p === serving ? "serving" : null },
+            h("td", null, short[p] || p, p === serving ? " ✓" : ""),
+            h("td", { class: "num", "data-field": "loss", "data-value": String(sc.loss) }, fmt(sc.loss, 1)),
+            h("td", { class: "num", "data-field": "errors", "data-value": String(sc.errors) }, fmt(sc.errors, 1)),
+            h("td", { class: "num", "data-field": "micro_f1", "data-value": String(sc.micro_f1) }, fmt(sc.micro_f1, 3)));
+        }));
       }
-      $("serving-rule").textContent = gate
-        ? "The vote serves until the model has made fewer errors than it on the labelled rounds, with a micro-F1 no lower."
-        : "The paper method always serves its model.";
+      const rule = st.serving && st.serving.rule;
+      $("serving-rule").textContent = !gate
+        ? (rule === "model" ? "The model always serves." : "The paper method always serves its model.")
+        : rule === "vote-fallback"
+          ? "The vote serves until the model has made fewer errors than it on the labelled rounds, with a micro-F1 no lower."
+          : "The candidate with the lowest recent loss (false alarms + 1.5 × misses, older labelled rounds discounted) serves; it changes only when another leads by the margin. Dawid–Skene serves before any label.";
       const ag = sv.agreement || {};
       $("serving-agreement").replaceChildren(...Object.keys(ag).map((n) => h("span", { class: "key", "data-reporter": n, "data-field": "agreement", "data-value": String(ag[n]) },
         swatch(colorOf(n)), `${n} ${fmt(ag[n], 2)}`)));

@@ -1,0 +1,208 @@
+//! Which predictor serves (docs/METHOD.md §3, `serve = "switch"`): the one whose decisions,
+//! scored on each labelled round before its label is learned, have the lowest recent loss.
+//!
+//! Three candidates decide every round: the whole-pool Dawid–Skene ([`super::ds`]), the
+//! context-aware model (the method's calibrated posteriors and fitted thresholds) and majority
+//! vote. Each labelled round adds to every candidate's loss `FP + c FN` over the round's known
+//! labels (`c = switch_fn_cost`: a missed label costs more than a false alarm, as micro-F1 has
+//! it), after discounting the loss so far by `switch_discount` (a window of about `1 / (1 -
+//! discount)` labelled rounds, so that a candidate that turns worse, as under drift, is left).
+//! The serving candidate changes only when another's loss is lower than its own by more than
+//! `switch_margin`: follow the leader with a hysteresis, so the served loss exceeds the best
+//! candidate's by at most the margin between switches, and a tie never flips the choice. With no
+//! label every loss is zero and the first candidate, Dawid–Skene, serves.
+
+use serde::{Deserialize, Serialize};
+
+/// A candidate predictor.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Predictor {
+    /// The whole-pool Dawid–Skene posterior, decided at `threshold_initial`.
+    DawidSkene,
+    /// The context-aware model: calibrated posteriors at the fitted thresholds.
+    Model,
+    /// Majority vote.
+    MajorityVote,
+}
+
+impl Predictor {
+    /// Every candidate, in the order ties are broken.
+    pub const ALL: [Predictor; 3] = [
+        Predictor::DawidSkene,
+        Predictor::Model,
+        Predictor::MajorityVote,
+    ];
+
+    /// The name responses, `/v1/state`, `/metrics` and the operator page give it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Predictor::DawidSkene => "dawid_skene",
+            Predictor::Model => "model",
+            Predictor::MajorityVote => "majority_vote",
+        }
+    }
+
+    fn index(self) -> usize {
+        self as usize
+    }
+}
+
+/// Discounted decision counts of one candidate.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct Counts {
+    pub tp: f64,
+    pub fp: f64,
+    pub fneg: f64,
+}
+
+impl Counts {
+    /// Micro-F1 of the discounted counts (1 with no positive at all).
+    pub fn f1(&self) -> f64 {
+        let den = 2.0 * self.tp + self.fp + self.fneg;
+        if den == 0.0 {
+            1.0
+        } else {
+            2.0 * self.tp / den
+        }
+    }
+}
+
+/// One candidate's recent score, as `/v1/state` and `/metrics` show it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct CandidateScore {
+    pub predictor: Predictor,
+    /// The discounted loss the switch compares (`FP + switch_fn_cost * FN`).
+    pub loss: f64,
+    /// Discounted Hamming errors (FP + FN).
+    pub errors: f64,
+    /// Micro-F1 of the discounted counts.
+    pub micro_f1: f64,
+}
+
+/// The switch's state.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Switch {
+    loss: [f64; 3],
+    counts: [Counts; 3],
+    serving: Predictor,
+    /// Labelled rounds scored.
+    rounds: u64,
+}
+
+impl Default for Switch {
+    fn default() -> Self {
+        Self {
+            loss: [0.0; 3],
+            counts: [Counts::default(); 3],
+            serving: Predictor::DawidSkene,
+            rounds: 0,
+        }
+    }
+}
+
+impl Switch {
+    /// The candidate serving now.
+    pub fn serving(&self) -> Predictor {
+        self.serving
+    }
+
+    /// Scores one labelled round: `decisions[c][k]` is candidate `c`'s decision (in
+    /// [`Predictor::ALL`] order) on label `k`, `truth[k]` 0, 1 or unknown (> 1, skipped).
+    /// Then the serving candidate is chosen again.
+    pub fn score(
+        &mut self,
+        decisions: &[Vec<bool>; 3],
+        truth: &[u8],
+        discount: f64,
+        fn_cost: f64,
+        margin: f64,
+    ) {
+        for (c, dec) in decisions.iter().enumerate() {
+            let (mut fp, mut fneg, mut tp) = (0.0, 0.0, 0.0);
+            for (&d, &y) in dec.iter().zip(truth) {
+                match (d, y) {
+                    (_, y) if y > 1 => {}
+                    (true, 1) => tp += 1.0,
+                    (true, _) => fp += 1.0,
+                    (false, 1) => fneg += 1.0,
+                    _ => {}
+                }
+            }
+            self.loss[c] = discount * self.loss[c] + fp + fn_cost * fneg;
+            let k = &mut self.counts[c];
+            k.tp = discount * k.tp + tp;
+            k.fp = discount * k.fp + fp;
+            k.fneg = discount * k.fneg + fneg;
+        }
+        self.rounds += 1;
+        // The leader: the lowest loss, ties to the earlier candidate.
+        let mut best = 0;
+        for c in 1..3 {
+            if self.loss[c] < self.loss[best] {
+                best = c;
+            }
+        }
+        if self.loss[best] < self.loss[self.serving.index()] - margin {
+            self.serving = Predictor::ALL[best];
+        }
+    }
+
+    /// Every candidate's recent score.
+    pub fn scores(&self) -> Vec<CandidateScore> {
+        Predictor::ALL
+            .iter()
+            .map(|&p| {
+                let c = self.counts[p.index()];
+                CandidateScore {
+                    predictor: p,
+                    loss: self.loss[p.index()],
+                    errors: c.fp + c.fneg,
+                    micro_f1: c.f1(),
+                }
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn dec(v: &[u8]) -> Vec<bool> {
+        v.iter().map(|&b| b != 0).collect()
+    }
+
+    #[test]
+    fn serves_dawid_skene_until_another_candidate_leads_by_the_margin() {
+        let mut s = Switch::default();
+        assert_eq!(s.serving(), Predictor::DawidSkene);
+        let truth = [1u8, 0, 1, 0];
+        // The model is right, Dawid-Skene misses one label a round, the vote two.
+        let d = [dec(&[0, 0, 1, 0]), dec(&[1, 0, 1, 0]), dec(&[0, 1, 1, 0])];
+        s.score(&d, &truth, 1.0, 1.5, 3.0);
+        // Loss 1.5 against 0: within the margin, no switch.
+        assert_eq!(s.serving(), Predictor::DawidSkene);
+        s.score(&d, &truth, 1.0, 1.5, 3.0);
+        s.score(&d, &truth, 1.0, 1.5, 3.0);
+        // 4.5 against 0: past it.
+        assert_eq!(s.serving(), Predictor::Model);
+        let sc = s.scores();
+        assert_eq!(sc[0].loss, 4.5);
+        assert_eq!(sc[2].errors, 6.0);
+        assert_eq!(sc[1].micro_f1, 1.0);
+        assert_eq!(s.rounds, 3);
+    }
+
+    #[test]
+    fn unknown_labels_are_not_scored_and_discounting_forgets() {
+        let mut s = Switch::default();
+        let d = [dec(&[1, 1]), dec(&[0, 0]), dec(&[0, 0])];
+        // The second label is unknown: only the first counts.
+        s.score(&d, &[0, 2], 0.5, 1.0, 0.0);
+        assert_eq!(s.scores()[0].loss, 1.0);
+        assert_eq!(s.serving(), Predictor::Model);
+        s.score(&d, &[0, 2], 0.5, 1.0, 0.0);
+        assert_eq!(s.scores()[0].loss, 1.5);
+    }
+}
