@@ -219,11 +219,17 @@ pub fn derive(
 ) -> DetectAnnotation {
     let mut t = Tracker::new(tracker.clone());
     let mut tracks: std::collections::BTreeMap<u64, Sightings> = Default::default();
+    let mut confirmed = std::collections::BTreeSet::new();
     for (fi, f) in frames.iter().enumerate() {
-        for o in t.update(&f.detections) {
+        for o in t.update_all(&f.detections) {
+            if o.confirmed {
+                confirmed.insert(o.track_id);
+            }
             tracks.entry(o.track_id).or_default().push((fi, o));
         }
     }
+    // A track never confirmed was one detection that nothing followed.
+    tracks.retain(|id, _| confirmed.contains(id));
     let name = |c: usize| names.get(c).cloned().unwrap_or_else(|| c.to_string());
     let detections = frames.iter().map(|f| f.detections.len()).sum();
     let mut out = DetectAnnotation {

@@ -184,6 +184,9 @@ pub struct TrackOut {
     pub class: usize,
     /// Index of the detection in this frame's input.
     pub idx: usize,
+    /// Whether the track is confirmed (activated). [`Tracker::update`] returns only confirmed
+    /// tracks; [`Tracker::update_all`] also the ones a detection started this frame.
+    pub confirmed: bool,
 }
 
 /// The tracker's state across frames. Feed it every frame in order with [`Tracker::update`].
@@ -219,8 +222,17 @@ impl Tracker {
     }
 
     /// One frame's detections in, the activated tracks this frame out (ultralytics'
-    /// `BYTETracker.update`, step by step).
+    /// `BYTETracker.update`, step by step, and its output).
     pub fn update(&mut self, dets: &[Detection]) -> Vec<TrackOut> {
+        let mut out = self.update_all(dets);
+        out.retain(|t| t.confirmed);
+        out
+    }
+
+    /// As [`Tracker::update`], plus the tracks a detection started this frame (unconfirmed
+    /// until their next frame; ultralytics does not output them). A caller counting in how many
+    /// frames an object was seen needs that first frame too.
+    pub fn update_all(&mut self, dets: &[Detection]) -> Vec<TrackOut> {
         let layout = self.layout;
         self.frame_id += 1;
         let fid = self.frame_id;
@@ -381,13 +393,14 @@ impl Tracker {
         self.tracked
             .iter()
             .map(|&t| &self.arena[t])
-            .filter(|t| t.is_activated)
+            .filter(|t| t.is_activated || t.frame_id == fid)
             .map(|t| TrackOut {
                 xyxy: t.xyxy(layout).map(|v| v as f32),
                 track_id: t.track_id,
                 score: t.score,
                 class: t.class,
                 idx: t.idx,
+                confirmed: t.is_activated,
             })
             .collect()
     }
