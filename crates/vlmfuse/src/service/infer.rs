@@ -38,6 +38,8 @@ struct Decoded {
 struct Processed {
     /// What the rules derived from the clip's signal track.
     derived: Option<vlmfuse_annotate::Annotation>,
+    /// What the detector derived from the clip's frames, or why it did not run.
+    detected: Option<Result<vlmfuse_detect::DetectAnnotation, String>>,
     record: RoundRecord,
     request: Value,
     reporters: Vec<(String, ReporterOut)>,
@@ -170,8 +172,15 @@ impl Service {
         }
         let mut decoded = Vec::with_capacity(uploads.len());
         let mut derived = Vec::with_capacity(uploads.len());
+        let mut detected = Vec::with_capacity(uploads.len());
         for (i, (up, track)) in uploads.iter().zip(&tracks).enumerate() {
-            let d = self.decode_and_embed(up).await?;
+            let mut d = self.decode_and_embed(up).await?;
+            let start = Instant::now();
+            let det = self.detect_clip(&d.input.path, &d.input.frames).await;
+            if det.is_some() {
+                d.timings.push(("detect".into(), stage("detect", start)));
+            }
+            detected.push(det);
             derived.push(match track {
                 Some(t) => Some(
                     super::annotate::derive(&self.cfg.annotate, t, Some(d.clip.info.duration_s))
@@ -188,27 +197,51 @@ impl Service {
         let runs = vlmfuse_models::run_all_batch(&self.pipeline.reporters, &inputs).await;
         let reporters_ms = stage("reporters", start);
         let mut processed = Vec::with_capacity(uploads.len());
-        for (((up, d), runs), derived) in uploads.iter().zip(decoded).zip(runs).zip(derived) {
+        for ((((up, d), runs), derived), detected) in uploads
+            .iter()
+            .zip(decoded)
+            .zip(runs)
+            .zip(derived)
+            .zip(detected)
+        {
             let mut p = self.label_and_record(up, d, runs, reporters_ms).await?;
             if let Some(a) = &derived {
                 p.request["signals"] = serde_json::to_value(a).unwrap_or_default();
             }
+            match &detected {
+                Some(Ok(a)) => {
+                    p.request["detections"] = serde_json::to_value(a).unwrap_or_default()
+                }
+                Some(Err(e)) => p.request["detections"] = json!({ "error": e }),
+                None => {}
+            }
             p.derived = derived;
+            p.detected = detected;
             processed.push(p);
         }
-        // What the vehicle's signals say, as partial feedback once the rounds are stored.
-        let feedback: Vec<Option<Vec<u8>>> = if self.cfg.annotate.feedback {
+        // What the vehicle's signals and the detector say, as partial feedback once the rounds
+        // are stored. The detector leaves out the labels the signals decided (two derived
+        // sources that disagree are refused whole).
+        let (feedback, detector_feedback): (Vec<Option<Vec<u8>>>, Vec<Option<Vec<u8>>>) = {
             let eng = self.shared.engine.read().await;
             processed
                 .iter()
                 .map(|p| {
-                    p.derived
+                    let kin = p
+                        .derived
                         .as_ref()
-                        .and_then(|a| super::annotate::truth_of(eng.ontology(), a))
+                        .and_then(|a| super::annotate::truth_of(eng.ontology(), a));
+                    let det = match (&p.detected, self.cfg.detect.feedback) {
+                        (Some(Ok(a)), true) => super::detect::truth_of(
+                            eng.ontology(),
+                            a,
+                            kin.as_deref().filter(|_| self.cfg.annotate.feedback),
+                        ),
+                        _ => None,
+                    };
+                    (kin.filter(|_| self.cfg.annotate.feedback), det)
                 })
-                .collect()
-        } else {
-            Vec::new()
+                .unzip()
         };
         let records = processed
             .iter_mut()
@@ -235,6 +268,8 @@ impl Service {
                         failed: Ordered(p.failed),
                         clip: p.clip,
                         derived: p.derived,
+                        detect_error: p.detected.as_ref().and_then(|r| r.as_ref().err().cloned()),
+                        detected: p.detected.and_then(Result::ok),
                         timings_ms: Ordered(timings),
                     }
                 })
@@ -252,21 +287,40 @@ impl Service {
         stage("fuse", fuse_start);
         drop(uploads);
         if !answer.replayed && feedback.iter().any(Option::is_some) {
-            self.kinematics_feedback(&mut answer.body, batch, feedback)
-                .await;
+            self.derived_feedback(
+                &mut answer.body,
+                batch,
+                feedback,
+                super::annotate::KINEMATICS,
+                "kinematics_feedback",
+            )
+            .await;
+        }
+        if !answer.replayed && detector_feedback.iter().any(Option::is_some) {
+            self.derived_feedback(
+                &mut answer.body,
+                batch,
+                detector_feedback,
+                super::detect::DETECTOR,
+                "detector_feedback",
+            )
+            .await;
         }
         Ok(answer)
     }
 
-    /// `[annotate] feedback = true`: each stored clip's derived labels go in as partial
-    /// feedback (source `kinematics`), and its answer gains `kinematics_feedback` (the
-    /// feedback's answer, or why it failed: the round is stored either way, and the feedback can
-    /// be sent again on `/v1/feedback`).
-    async fn kinematics_feedback(
+    /// `[annotate] feedback = true` / `[detect] feedback = true`: each stored clip's derived
+    /// labels go in as partial feedback (source `kinematics` or `detector`), and its answer
+    /// gains `field` (`kinematics_feedback`, `detector_feedback`: the feedback's answer, or why
+    /// it failed: the round is stored either way, and the feedback can be sent again on
+    /// `/v1/feedback`).
+    async fn derived_feedback(
         &self,
         body: &mut Value,
         batch: bool,
         truths: Vec<Option<Vec<u8>>>,
+        source: &str,
+        field: &str,
     ) {
         for (i, truth) in truths.into_iter().enumerate() {
             let Some(truth) = truth else { continue };
@@ -278,13 +332,11 @@ impl Service {
             let Some(round_id) = clip["round_id"].as_str().map(str::to_string) else {
                 continue;
             };
-            let res = self
-                .feedback_truth(round_id, truth, super::annotate::KINEMATICS.into())
-                .await;
-            clip["kinematics_feedback"] = match res {
+            let res = self.feedback_truth(round_id, truth, source.into()).await;
+            clip[field] = match res {
                 Ok((out, _)) => serde_json::to_value(out).unwrap_or_default(),
                 Err(e) => {
-                    tracing::warn!(error = %e, "kinematic feedback failed");
+                    tracing::warn!(error = %e, source, "derived feedback failed");
                     json!({"error": e.to_string()})
                 }
             };
@@ -450,6 +502,7 @@ impl Service {
         });
         Ok(Processed {
             derived: None,
+            detected: None,
             record: RoundRecord {
                 id: up.file_name.clone(),
                 context: context.into_iter().map(f64::from).collect(),
