@@ -113,7 +113,8 @@ pub fn non_max_suppression(
                 class = k;
             }
         }
-        if !(best > cfg.conf) {
+        // Strictly above (a NaN score is never a candidate).
+        if best.partial_cmp(&cfg.conf) != Some(std::cmp::Ordering::Greater) {
             continue;
         }
         let (cx, cy, hw, hh) = (at(0, a), at(1, a), at(2, a) / 2.0, at(3, a) / 2.0);

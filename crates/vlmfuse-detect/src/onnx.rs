@@ -117,7 +117,7 @@ impl Detector {
             (h, w) if h > 0 && w > 0 => (h as u32, w as u32),
             _ => meta_imgsz
                 .as_deref()
-                .and_then(|s| parse_imgsz(&s))
+                .and_then(parse_imgsz)
                 .unwrap_or((640, 640)),
         };
         let head = match out_shape.as_slice() {

@@ -4,6 +4,9 @@
 //! ByteTrack measures `(cx, cy, aspect, h)` ([`Layout::Xyah`]); BoT-SORT `(cx, cy, w, h)`
 //! ([`Layout::Xywh`]).
 
+// Index loops over 4x4 and 8x8 arrays read like the matrix algebra they implement.
+#![allow(clippy::needless_range_loop)]
+
 pub type Mean = [f64; 8];
 pub type Cov = [[f64; 8]; 8];
 

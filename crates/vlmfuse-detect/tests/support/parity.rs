@@ -2,7 +2,7 @@
 //! predictor and trackers). Shared by `tests/parity.rs` (the committed tiny model) and
 //! `examples/parity.rs` (any directory the script wrote, e.g. the real YOLO11n at 640).
 
-#![allow(dead_code)]
+#![allow(dead_code, clippy::needless_range_loop)]
 
 use std::path::{Path, PathBuf};
 

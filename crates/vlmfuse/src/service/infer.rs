@@ -89,6 +89,9 @@ async fn label_round(
     }
 }
 
+/// A clip's derived truth for a partial feedback (`None`: nothing decided or not sent).
+type Truth = Option<Vec<u8>>;
+
 /// Records a stage's time in `vlmfuse_stage_seconds` and returns it in milliseconds.
 pub(crate) fn stage(name: &'static str, start: Instant) -> f64 {
     let s = start.elapsed().as_secs_f64();
@@ -222,7 +225,7 @@ impl Service {
         // What the vehicle's signals and the detector say, as partial feedback once the rounds
         // are stored. The detector leaves out the labels the signals decided (two derived
         // sources that disagree are refused whole).
-        let (feedback, detector_feedback): (Vec<Option<Vec<u8>>>, Vec<Option<Vec<u8>>>) = {
+        let (feedback, detector_feedback): (Vec<Truth>, Vec<Truth>) = {
             let eng = self.shared.engine.read().await;
             processed
                 .iter()
