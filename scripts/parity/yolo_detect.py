@@ -52,7 +52,7 @@ Other modes (nothing in the repository is written):
                                                  ~10 MB ONNX, so never committed); check them with
                                                  `cargo run --release -p vlmfuse-detect --example parity -- DIR`
     --bench MODEL.onnx [--threads N]             per-frame latency of ultralytics' ONNX path
-                                                 (onnxruntime-python) on a 1280x720 frame
+                                                 (onnxruntime-python) on the 1280x720 parity frame
 """
 
 from __future__ import annotations
@@ -336,31 +336,41 @@ def tracker_reference() -> dict:
 
 
 def bench(model_path: Path, threads: int | None, n: int = 30) -> None:
-    import onnxruntime as ort
-
-    bgr = scene(1280, 720, seed=104)
+    """ultralytics' predict() per frame, and its three steps each timed alone, like the Rust
+    example: preprocess (letterbox, BGR->RGB, /255), the ONNX run through its AutoBackend
+    (onnxruntime-python), postprocess (NMS, scale_boxes, Results)."""
+    bgr = cv2.imread(str(REPO / "tests/data/parity/detect/frame_4_1280x720.png"))
     model = YOLO(str(model_path), task="detect")
     model.predict(bgr, verbose=False)
-    t = time.perf_counter()
-    for _ in range(n):
-        model.predict(bgr, verbose=False)
-    full = (time.perf_counter() - t) / n * 1e3
-    sp = model.predictor.speed
-    opts = ort.SessionOptions()
-    if threads:
+    pred = model.predictor
+    if threads:  # the AutoBackend's session, rebuilt with the same thread count as the Rust one
+        import onnxruntime as ort
+
+        opts = ort.SessionOptions()
         opts.intra_op_num_threads = threads
-    sess = ort.InferenceSession(str(model_path), opts, providers=["CPUExecutionProvider"])
-    x = model.predictor.preprocess([bgr]).numpy()
-    sess.run(None, {sess.get_inputs()[0].name: x})
-    t = time.perf_counter()
-    for _ in range(n):
-        sess.run(None, {sess.get_inputs()[0].name: x})
-    run = (time.perf_counter() - t) / n * 1e3
+        be = pred.model.backend if hasattr(pred.model, "backend") else pred.model
+        sess = getattr(be, "session", None)
+        if sess is not None:
+            be.session = ort.InferenceSession(str(model_path), opts, providers=["CPUExecutionProvider"])
+        model.predict(bgr, verbose=False)
+
+    def timed(f) -> float:
+        t = time.perf_counter()
+        for _ in range(n):
+            out = f()
+        timed.last = out
+        return (time.perf_counter() - t) / n * 1e3
+
+    full = timed(lambda: model.predict(bgr, verbose=False))
+    pre = timed(lambda: pred.preprocess([bgr]))
+    im = timed.last
+    inf = timed(lambda: pred.inference(im))
+    raw = timed.last
+    post = timed(lambda: pred.postprocess(raw, im, [bgr]))
     print(
-        f"ultralytics {model_path.name} {x.shape[2]}x{x.shape[3]}: predict() {full:.2f} ms/frame "
-        f"(last call: preprocess {sp['preprocess']:.2f}, inference {sp['inference']:.2f}, "
-        f"postprocess {sp['postprocess']:.2f}); onnxruntime run alone {run:.2f} ms "
-        f"(intra threads {threads or 'default'})"
+        f"ultralytics {model_path.name} {im.shape[2]}x{im.shape[3]}: predict() {full:.2f} ms/frame "
+        f"(alone: preprocess {pre:.2f}, onnxruntime {inf:.2f}, postprocess {post:.2f}; "
+        f"intra threads {threads or 'default'}; {n} runs)"
     )
 
 

@@ -146,10 +146,14 @@ pub fn to_chw(rgb: &[u8], h: usize, w: usize, out: &mut [f32]) {
     let plane = h * w;
     debug_assert_eq!(rgb.len(), plane * 3);
     debug_assert_eq!(out.len(), plane * 3);
+    // `v / 255` exactly as torch computes it, looked up (a division per value is slow).
+    let lut: [f32; 256] = std::array::from_fn(|v| v as f32 / 255.0);
+    let (r, rest) = out.split_at_mut(plane);
+    let (g, b) = rest.split_at_mut(plane);
     for (i, px) in rgb.chunks_exact(3).enumerate() {
-        for c in 0..3 {
-            out[c * plane + i] = px[c] as f32 / 255.0;
-        }
+        r[i] = lut[px[0] as usize];
+        g[i] = lut[px[1] as usize];
+        b[i] = lut[px[2] as usize];
     }
 }
 
@@ -203,30 +207,35 @@ fn round_half_even(v: f32) -> i32 {
 pub fn resize_linear_u8(src: &[u8], sw: usize, sh: usize, dw: usize, dh: usize) -> Vec<u8> {
     const CN: usize = 3;
     let (xo, xa, xmax) = linear_taps(sw, dw);
+    // Per destination column: the two source byte offsets and weights. Past `xmax` OpenCV
+    // takes the edge pixel times 2048, which is the same as both taps on it with (2048, 0).
+    let taps: Vec<(usize, usize, i32, i32)> = (0..dw)
+        .map(|dx| {
+            let s0 = xo[dx] * CN;
+            if dx < xmax {
+                (s0, s0 + CN, xa[dx][0], xa[dx][1])
+            } else {
+                (s0, s0, COEF_SCALE as i32, 0)
+            }
+        })
+        .collect();
+    let hresize = |sy: usize, out: &mut [i32]| {
+        let row = &src[sy * sw * CN..(sy + 1) * sw * CN];
+        for (o, &(s0, s1, a0, a1)) in out.chunks_exact_mut(CN).zip(&taps) {
+            for c in 0..CN {
+                o[c] = row[s0 + c] as i32 * a0 + row[s1 + c] as i32 * a1;
+            }
+        }
+    };
     // Vertical taps are not clamped like the horizontal ones: OpenCV clamps the source rows
     // but keeps the weights (so the first rows of an upscale use the first source row twice).
     let scale_y = 1.0 / (dh as f64 / sh as f64);
-    // Horizontally resized rows, computed once per source row that is used.
-    let mut hrows: Vec<Option<Vec<i32>>> = vec![None; sh];
-    let hrow = |sy: usize, hrows: &mut Vec<Option<Vec<i32>>>| {
-        if hrows[sy].is_none() {
-            let row = &src[sy * sw * CN..(sy + 1) * sw * CN];
-            let mut out = vec![0i32; dw * CN];
-            for dx in 0..dw {
-                let sx = xo[dx] * CN;
-                for c in 0..CN {
-                    out[dx * CN + c] = if dx < xmax {
-                        row[sx + c] as i32 * xa[dx][0] + row[sx + CN + c] as i32 * xa[dx][1]
-                    } else {
-                        row[sx + c] as i32 * COEF_SCALE as i32
-                    };
-                }
-            }
-            hrows[sy] = Some(out);
-        }
-    };
+    // The two horizontally resized source rows in use; rows only move down, so each source
+    // row is resized once.
+    let mut rows = [vec![0i32; dw * CN], vec![0i32; dw * CN]];
+    let mut have = [usize::MAX; 2];
     let mut dst = vec![0u8; dw * dh * CN];
-    for dy in 0..dh {
+    for (dy, out) in dst.chunks_exact_mut(dw * CN).enumerate() {
         let fy = ((dy as f64 + 0.5) * scale_y - 0.5) as f32;
         let sy = fy.floor() as i64;
         let fy = fy - sy as f32;
@@ -234,16 +243,22 @@ pub fn resize_linear_u8(src: &[u8], sw: usize, sh: usize, dw: usize, dh: usize) 
         let b1 = round_half_even(fy * COEF_SCALE);
         let r0 = sy.clamp(0, sh as i64 - 1) as usize;
         let r1 = (sy + 1).clamp(0, sh as i64 - 1) as usize;
-        hrow(r0, &mut hrows);
-        hrow(r1, &mut hrows);
-        let (s0, s1) = (hrows[r0].as_ref(), hrows[r1].as_ref());
-        let (Some(s0), Some(s1)) = (s0, s1) else {
-            unreachable!("both rows were just computed")
-        };
-        let out = &mut dst[dy * dw * CN..(dy + 1) * dw * CN];
-        for x in 0..dw * CN {
-            let v = (((s0[x] >> 4) * b0) >> 16) + (((s1[x] >> 4) * b1) >> 16) + 2;
-            out[x] = (v >> 2).clamp(0, 255) as u8;
+        if have[0] != r0 {
+            if have[1] == r0 {
+                rows.swap(0, 1);
+                have.swap(0, 1);
+            } else {
+                hresize(r0, &mut rows[0]);
+                have[0] = r0;
+            }
+        }
+        if have[1] != r1 {
+            hresize(r1, &mut rows[1]);
+            have[1] = r1;
+        }
+        for ((o, &a), &b) in out.iter_mut().zip(&rows[0]).zip(&rows[1]) {
+            let v = (((a >> 4) * b0) >> 16) + (((b >> 4) * b1) >> 16) + 2;
+            *o = (v >> 2).clamp(0, 255) as u8;
         }
     }
     dst

@@ -50,7 +50,10 @@ pub struct Detector {
     head: Head,
     names: Vec<String>,
     nms: NmsConfig,
-    session: Mutex<Session>,
+    /// `Session::run` needs `&mut`, and one run at a time is what the thread budget assumes;
+    /// the input buffer is kept with it (a fresh 5 MB tensor per frame costs more in page
+    /// faults than the letterbox itself).
+    session: Mutex<(Session, Vec<f32>)>,
 }
 
 impl std::fmt::Debug for Detector {
@@ -164,7 +167,7 @@ impl Detector {
             head,
             names,
             nms: cfg.nms,
-            session: Mutex::new(session),
+            session: Mutex::new((session, Vec::new())),
         };
         let grey = vec![114u8; 64 * 48 * 3];
         d.detect(FrameRef {
@@ -198,15 +201,35 @@ impl Detector {
 
     /// The model input for a frame (`[3, H, W]` in `[0, 1]`) and where the frame went.
     pub fn preprocess(&self, frame: FrameRef<'_>) -> Result<(Vec<f32>, Geometry), DetectError> {
+        let mut x = Vec::new();
+        let g = self.preprocess_into(frame, &mut x)?;
+        Ok((x, g))
+    }
+
+    /// [`Detector::preprocess`] into a buffer the caller keeps (resized to fit).
+    pub fn preprocess_into(
+        &self,
+        frame: FrameRef<'_>,
+        x: &mut Vec<f32>,
+    ) -> Result<Geometry, DetectError> {
         let (img, g) = self.letterbox().apply(frame)?;
         let (h, w) = (g.out_h() as usize, g.out_w() as usize);
-        let mut x = vec![0f32; 3 * h * w];
-        to_chw(&img, h, w, &mut x);
-        Ok((x, g))
+        x.resize(3 * h * w, 0.0);
+        to_chw(&img, h, w, x);
+        Ok(g)
     }
 
     /// One forward pass: the raw output and its shape.
     pub fn run(&self, input: &[f32]) -> Result<(Vec<f32>, Vec<i64>), DetectError> {
+        let mut guard = self.session.lock().unwrap_or_else(|p| p.into_inner());
+        self.run_on(&mut guard.0, input)
+    }
+
+    fn run_on(
+        &self,
+        session: &mut Session,
+        input: &[f32],
+    ) -> Result<(Vec<f32>, Vec<i64>), DetectError> {
         let (h, w) = (self.size.0 as usize, self.size.1 as usize);
         if input.len() != 3 * h * w {
             return Err(DetectError::Config(format!(
@@ -216,7 +239,6 @@ impl Detector {
         }
         let run_err = |e: vlmfuse_ort::ort::Error| DetectError::Ort(OrtError::Run(e.to_string()));
         let t = TensorRef::from_array_view(([1usize, 3, h, w], input)).map_err(run_err)?;
-        let mut session = self.session.lock().unwrap_or_else(|p| p.into_inner());
         let outputs = session
             .run(vlmfuse_ort::ort::inputs![self.input.as_str() => t])
             .map_err(run_err)?;
@@ -260,8 +282,12 @@ impl Detector {
 
     /// Detections in one frame (boxes in its pixels), highest score first.
     pub fn detect(&self, frame: FrameRef<'_>) -> Result<Vec<Detection>, DetectError> {
-        let (x, _) = self.preprocess(frame)?;
-        let (raw, shape) = self.run(&x)?;
+        let (raw, shape) = {
+            let mut guard = self.session.lock().unwrap_or_else(|p| p.into_inner());
+            let (session, x) = &mut *guard;
+            self.preprocess_into(frame, x)?;
+            self.run_on(session, x)?
+        };
         self.postprocess(&raw, &shape, frame.height, frame.width)
     }
 

@@ -256,12 +256,17 @@ pub fn derive(
         let mut seen_brief = 0usize;
         for (&id, sights) in &tracks {
             // The sightings that count: the rule's classes, in the path where required.
+            // The path test uses the detection's own box (where the object was seen), not the
+            // filter's estimate, which lags a moving object.
+            let seen = |fi: usize, o: &TrackOut| {
+                frames[fi].detections.get(o.idx).map_or(o.xyxy, |d| d.xyxy)
+            };
             let good: Vec<&(usize, TrackOut)> = sights
                 .iter()
                 .filter(|(fi, o)| {
                     counts(o.class)
                         && (!rule.in_path
-                            || rules.in_path(&o.xyxy, frames[*fi].width, frames[*fi].height))
+                            || rules.in_path(&seen(*fi, o), frames[*fi].width, frames[*fi].height))
                 })
                 .collect();
             if good.is_empty() {
@@ -277,13 +282,8 @@ pub fn derive(
                 .max_by(|a, b| a.1.score.total_cmp(&b.1.score))
                 .copied()
                 .unwrap_or(good[0]);
-            // The detection's own box, not the filtered one, is what the detector saw.
             let bf = &frames[best.0];
-            let best_box = bf
-                .detections
-                .get(best.1.idx)
-                .map(|d| d.xyxy)
-                .unwrap_or(best.1.xyxy);
+            let best_box = seen(best.0, &best.1);
             evidence.push(TrackEvidence {
                 class: name(best.1.class),
                 track_id: id,
