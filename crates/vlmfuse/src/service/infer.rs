@@ -175,15 +175,8 @@ impl Service {
         }
         let mut decoded = Vec::with_capacity(uploads.len());
         let mut derived = Vec::with_capacity(uploads.len());
-        let mut detected = Vec::with_capacity(uploads.len());
         for (i, (up, track)) in uploads.iter().zip(&tracks).enumerate() {
-            let mut d = self.decode_and_embed(up).await?;
-            let start = Instant::now();
-            let det = self.detect_clip(&d.input.path, &d.input.frames).await;
-            if det.is_some() {
-                d.timings.push(("detect".into(), stage("detect", start)));
-            }
-            detected.push(det);
+            let d = self.decode_and_embed(up).await?;
             derived.push(match track {
                 Some(t) => Some(
                     super::annotate::derive(&self.cfg.annotate, t, Some(d.clip.info.duration_s))
@@ -194,11 +187,33 @@ impl Service {
             decoded.push(d);
         }
         // Every reporter sees all the request's clips at once: an in-process model runs them as
-        // one batch (one vision pass, one prefill), a remote one concurrently.
-        let start = Instant::now();
+        // one batch (one vision pass, one prefill), a remote one concurrently. The detector
+        // (clip by clip, on the blocking pool) runs meanwhile: behind remote reporters it costs
+        // no time.
         let inputs: Vec<ClipInput> = decoded.iter().map(|d| d.input.clone()).collect();
-        let runs = vlmfuse_models::run_all_batch(&self.pipeline.reporters, &inputs).await;
-        let reporters_ms = stage("reporters", start);
+        let reporters = async {
+            let start = Instant::now();
+            let runs = vlmfuse_models::run_all_batch(&self.pipeline.reporters, &inputs).await;
+            (runs, stage("reporters", start))
+        };
+        let detections = async {
+            let mut out = Vec::with_capacity(inputs.len());
+            for input in &inputs {
+                let start = Instant::now();
+                let det = self.detect_clip(&input.path, &input.frames).await;
+                let ms = det.is_some().then(|| stage("detect", start));
+                out.push((det, ms));
+            }
+            out
+        };
+        let ((runs, reporters_ms), detections) = tokio::join!(reporters, detections);
+        let mut detected = Vec::with_capacity(uploads.len());
+        for (d, (det, ms)) in decoded.iter_mut().zip(detections) {
+            if let Some(ms) = ms {
+                d.timings.push(("detect".into(), ms));
+            }
+            detected.push(det);
+        }
         let mut processed = Vec::with_capacity(uploads.len());
         for ((((up, d), runs), derived), detected) in uploads
             .iter()
