@@ -8,6 +8,9 @@ use std::path::PathBuf;
 use serde::{Deserialize, Serialize};
 use vlmfuse_detect::{NmsConfig, RulesConfig, TrackerConfig, TrackerKind};
 
+/// Most frames the detector samples of its own from one clip.
+pub const MAX_FRAMES: usize = 128;
+
 #[derive(clap::Args, Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct DetectSection {
@@ -46,8 +49,8 @@ pub struct DetectSection {
     )]
     pub max_det: usize,
     /// Frames the detector samples from each clip: 0 uses the request's sampled frames
-    /// (`media.frames`); more decode the clip again at that many frames, because tracking needs
-    /// frames close enough in time that an object's boxes overlap.
+    /// (`media.frames`); more (at most 128) decode the clip again at that many frames, because
+    /// tracking needs frames close enough in time that an object's boxes overlap.
     #[arg(
         long = "detect-frames",
         id = "detect-frames",
@@ -131,10 +134,12 @@ impl DetectSection {
         self.rules
             .validate()
             .map_err(|e| anyhow::anyhow!("detect.rules: {e}"))?;
+        // A clip's sample is held in memory at once (at the model's input size on its short
+        // side: 640 px frames of a 16:9 clip are 2.2 MB each).
         anyhow::ensure!(
-            self.frames <= vlmfuse_media::MAX_SAMPLE_FRAMES,
-            "detect.frames must be 0..={}",
-            vlmfuse_media::MAX_SAMPLE_FRAMES
+            self.frames <= MAX_FRAMES,
+            "detect.frames must be 0..={MAX_FRAMES}, got {}",
+            self.frames
         );
         anyhow::ensure!(self.threads != Some(0), "detect.threads must be at least 1");
         Ok(())

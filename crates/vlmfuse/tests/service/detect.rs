@@ -174,6 +174,8 @@ fn detect_config_reads_flags_and_refuses_labels_outside_the_ontology() {
     let e = vlmfuse::Config::from_toml(bad).unwrap_err();
     assert!(format!("{e:#}").contains("flying"), "{e:#}");
     assert!(vlmfuse::Config::from_toml("[detect]\nconf = 2.0\n").is_err());
+    assert!(vlmfuse::Config::from_toml("[detect]\nframes = 500\n").is_err());
+    assert!(vlmfuse::Config::from_toml("[detect]\nframes = 24\n").is_ok());
     assert!(vlmfuse::Config::from_toml("[detect]\nmodle = \"x\"\n").is_err());
     assert!(vlmfuse::Config::from_toml("[detect.tracker]\nkind = \"sort\"\n").is_err());
 }
