@@ -17,7 +17,9 @@ What it writes (tests/data/parity/detect/, compared by crates/vlmfuse-detect/tes
   tracker.json      a synthetic detection sequence (objects moving and crossing, an occlusion,
                     low-score detections, a one-frame false positive, a long absence) and the
                     tracks that ultralytics' BOTSORT (with_reid False, gmc_method none) and
-                    BYTETracker output for it, frame by frame, under a few settings
+                    BYTETracker output for it, frame by frame, under a few settings; and lap's
+                    answers on 60 random cost matrices with a cost limit (the assignment the
+                    trackers call), which `--tracker-only` rewrites alone
 
 Random weights make every activation vanish through the network (default inits shrink the
 variance layer by layer) and every class score sigmoid(bias) ~ 0.01 (ultralytics initialises the
@@ -316,6 +318,24 @@ def run_tracker(kind: str, overrides: dict, seq):
     return frames
 
 
+def assignment_reference(seed: int = 11, n: int = 60) -> list:
+    """lap.lapjv(cost, extend_cost=True, cost_limit=thresh) on random f32 cost matrices, as
+    ultralytics' matching.linear_assignment calls it: the row -> column answer (-1 unmatched)."""
+    import lap
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(n):
+        rows, cols = int(rng.integers(1, 9)), int(rng.integers(1, 9))
+        cost = rng.random((rows, cols)).astype(np.float32)
+        if k % 3 == 0:  # IoU-like: most pairs far apart (cost 1), a few close
+            cost = np.where(rng.random((rows, cols)) < 0.7, np.float32(1.0), cost * np.float32(0.6))
+        thresh = float(rng.choice([0.5, 0.7, 0.8]))
+        _, x, _ = lap.lapjv(cost, extend_cost=True, cost_limit=thresh)
+        out.append({"rows": rows, "cols": cols, "thresh": thresh, "cost": [float(v) for v in cost.ravel()], "x": [int(v) for v in x]})
+    return out
+
+
 def tracker_reference() -> dict:
     seq = detection_sequence()
     runs = []
@@ -329,7 +349,7 @@ def tracker_reference() -> dict:
         ids = sorted({r[4] for f in frames for r in f})
         print(f"{kind} {overrides}: {len(ids)} ids")
         runs.append({"tracker": kind, "overrides": overrides, "frames": frames})
-    return {"detections": seq, "width": 1280, "height": 720, "runs": runs}
+    return {"detections": seq, "width": 1280, "height": 720, "runs": runs, "assignments": assignment_reference()}
 
 
 # --- bench ------------------------------------------------------------------------------------
@@ -381,6 +401,7 @@ def main() -> None:
     ap.add_argument("--imgsz", type=int, default=160)
     ap.add_argument("--bench", type=Path, help="time ultralytics' ONNX path on this model and exit")
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--tracker-only", action="store_true", help="rewrite tracker.json alone (no export)")
     a = ap.parse_args()
 
     v = versions()
@@ -392,6 +413,11 @@ def main() -> None:
         return
     tiny = Path(a.model).resolve() == TINY_YAML
     a.out.mkdir(parents=True, exist_ok=True)
+    if a.tracker_only:
+        tr = tracker_reference()
+        tr["versions"] = v
+        (a.out / "tracker.json").write_text(json.dumps(tr) + "\n")
+        return
     for old in a.out.glob("*.png"):
         old.unlink()
     if tiny:

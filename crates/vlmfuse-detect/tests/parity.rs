@@ -4,7 +4,7 @@
 
 mod support;
 
-use support::parity::{check_onnx, check_pure, check_tracker, committed};
+use support::parity::{check_assignments, check_onnx, check_pure, check_tracker, committed};
 
 #[test]
 fn letterbox_and_nms_match_ultralytics_on_its_raw_outputs() {
@@ -51,4 +51,11 @@ fn tracker_ids_match_ultralytics_botsort_and_bytetrack() {
     assert_eq!(r.frames, 4 * 60);
     assert!(r.tracks_compared > 600, "{}", r.tracks_compared);
     assert!(r.max_box_diff <= 1e-3, "box diff {}", r.max_box_diff);
+}
+
+#[test]
+fn the_assignment_matches_laps_lapjv_with_a_cost_limit() {
+    let (n, bad) = check_assignments(&committed());
+    assert_eq!(n, 60);
+    assert!(bad.is_empty(), "{bad:#?}");
 }

@@ -343,3 +343,41 @@ pub fn check_tracker(dir: &Path) -> TrackReport {
     }
     r
 }
+
+/// `linear_assignment` against `lap.lapjv(cost, extend_cost=True, cost_limit=thresh)` on the
+/// stored random matrices: (matrices compared, those whose row -> column answer differs).
+pub fn check_assignments(dir: &Path) -> (usize, Vec<String>) {
+    let t = json(dir, "tracker.json");
+    let mut bad = Vec::new();
+    let cases = t["assignments"].as_array().unwrap();
+    for (k, c) in cases.iter().enumerate() {
+        let rows = c["rows"].as_u64().unwrap() as usize;
+        let cols = c["cols"].as_u64().unwrap() as usize;
+        let cost: Vec<f32> = c["cost"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap() as f32)
+            .collect();
+        let (matches, _, _) = vlmfuse_detect::track::linear_assignment(
+            &cost,
+            rows,
+            cols,
+            c["thresh"].as_f64().unwrap(),
+        );
+        let mut x = vec![-1i64; rows];
+        for (r, col) in matches {
+            x[r] = col as i64;
+        }
+        let want: Vec<i64> = c["x"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_i64().unwrap())
+            .collect();
+        if x != want {
+            bad.push(format!("case {k} ({rows}x{cols}): {x:?} vs lap {want:?}"));
+        }
+    }
+    (cases.len(), bad)
+}
