@@ -150,6 +150,25 @@ pub fn non_max_suppression(
         .collect()
 }
 
+/// An end-to-end head's `[1, N, 6]` output (`x1, y1, x2, y2, score, class` per row, NMS done in
+/// the model: YOLOv10, YOLO26): ultralytics' `end2end` branch, the rows with a score strictly
+/// above `conf` in the model's order, at most `max_det`.
+pub fn end_to_end(raw: &[f32], cfg: &NmsConfig) -> Vec<Detection> {
+    raw.chunks_exact(6)
+        .filter(|r| r[4].partial_cmp(&cfg.conf) == Some(std::cmp::Ordering::Greater))
+        .take(cfg.max_det)
+        .map(|r| Detection {
+            xyxy: [r[0], r[1], r[2], r[3]],
+            score: r[4],
+            class: if r[5].is_finite() && r[5] > 0.0 {
+                r[5] as usize
+            } else {
+                0
+            },
+        })
+        .collect()
+}
+
 /// `torchvision.ops.nms` on the CPU: indices of the kept boxes, highest score first. Scores are
 /// sorted stably (equal scores keep their input order), and a box is suppressed when its IoU
 /// with a kept one is strictly above `iou` (computed in `f32`, compared in `f64` as
@@ -284,6 +303,25 @@ mod tests {
         }];
         scale_boxes(&mut d, (160, 160), (180, 320));
         assert_eq!(d[0].xyxy, [20.0, 0.0, 320.0, 50.0]);
+    }
+
+    #[test]
+    fn an_end_to_end_output_is_filtered_in_its_own_order() {
+        let raw = [
+            1.0, 2.0, 3.0, 4.0, 0.9, 2.0, //
+            5.0, 6.0, 7.0, 8.0, 0.2, 1.0, // below conf
+            9.0, 9.0, 9.5, 9.5, 0.3, 0.0, //
+            0.0, 0.0, 1.0, 1.0, 0.8, 3.0,
+        ];
+        let d = end_to_end(&raw, &NmsConfig::default());
+        let got: Vec<(usize, f32)> = d.iter().map(|d| (d.class, d.score)).collect();
+        assert_eq!(got, [(2, 0.9), (0, 0.3), (3, 0.8)]);
+        assert_eq!(d[0].xyxy, [1.0, 2.0, 3.0, 4.0]);
+        let cfg = NmsConfig {
+            max_det: 2,
+            ..Default::default()
+        };
+        assert_eq!(end_to_end(&raw, &cfg).len(), 2);
     }
 
     #[test]

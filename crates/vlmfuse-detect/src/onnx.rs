@@ -18,7 +18,9 @@ use vlmfuse_ort::ort::session::Session;
 use vlmfuse_ort::ort::value::{TensorElementType, TensorRef};
 use vlmfuse_ort::{describe_outlets, OrtError, SessionOptions};
 
-use crate::decode::{non_max_suppression, output_layout, scale_boxes, Detection, NmsConfig};
+use crate::decode::{
+    end_to_end, non_max_suppression, output_layout, scale_boxes, Detection, NmsConfig,
+};
 use crate::letterbox::{to_chw, Geometry, Letterbox};
 use crate::names::parse_names;
 use crate::rules::FrameDetections;
@@ -265,16 +267,7 @@ impl Detector {
                 let (nc, anchors) = output_layout(shape, raw.len())?;
                 non_max_suppression(raw, nc, anchors, &self.nms)
             }
-            Head::EndToEnd => raw
-                .chunks_exact(6)
-                .filter(|r| r[4] > self.nms.conf)
-                .take(self.nms.max_det)
-                .map(|r| Detection {
-                    xyxy: [r[0], r[1], r[2], r[3]],
-                    score: r[4],
-                    class: r[5].max(0.0) as usize,
-                })
-                .collect(),
+            Head::EndToEnd => end_to_end(raw, &self.nms),
         };
         scale_boxes(&mut dets, self.size, (frame_h, frame_w));
         Ok(dets)
