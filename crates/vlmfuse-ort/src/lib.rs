@@ -2,11 +2,12 @@
 //! process-wide environment, and the session policy (threads, optimisation) that every ONNX
 //! backend shares.
 //!
-//! Why a crate of its own: the context embedder (in `vlmfuse-models`) and the labeler's sentence
-//! encoder (in `vlmfuse-labeler`) both run on ONNX Runtime, neither crate depends on the other,
-//! and ONNX Runtime allows exactly one environment per process. Keeping the library lookup, the
-//! environment and the thread policy here means both backends load the same library once and
-//! size their pools by the same rule, and only this crate names `ort`'s loading API.
+//! Why a crate of its own: the context embedder (in `vlmfuse-models`), the labeler's sentence
+//! encoder (in `vlmfuse-labeler`) and the object detector (in `vlmfuse-detect`) all run on ONNX
+//! Runtime, none of those crates depends on another, and ONNX Runtime allows exactly one
+//! environment per process. Keeping the library lookup, the environment and the thread policy
+//! here means every backend loads the same library once and sizes its pool by the same rule,
+//! and only this crate names `ort`'s loading API.
 //!
 //! Why `load-dynamic`: `ort`'s default features download a prebuilt runtime at build time, which
 //! cannot work offline; instead the shared library of the PyPI wheel `onnxruntime==1.31.1` is

@@ -1,8 +1,9 @@
 //! The `vlmfuse` command line: one binary for the service (`serve`), the paper's evaluation
 //! protocol (`eval`), the benchmarks (`bench`), bulk loading (`import`), the labeler (`label`)
-//! one reporter on one clip (`describe`) and labels from a vehicle-signal track (`annotate`).
+//! one reporter on one clip (`describe`), labels from a vehicle-signal track (`annotate`) and
+//! from an object detector (`detect`).
 
-use crate::{annotate, bench, config, describe, eval, import, label, serve};
+use crate::{annotate, bench, config, describe, detect, eval, import, label, serve};
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
@@ -36,6 +37,9 @@ pub enum Cmd {
     /// Derive driving labels (brake, stop, turns, merge, ...) from a vehicle-signal track,
     /// with the evidence for each; `--simulate N` scores the rules on simulated clips.
     Annotate(annotate::AnnotateArgs),
+    /// Detect objects in an image or a clip's frames with a YOLO ONNX export, track them and
+    /// derive driving labels (traffic light, pedestrian in the path, stop sign) with evidence.
+    Detect(detect::DetectArgs),
 }
 
 /// Parses the command line, runs the command, and prints an error with its causes.
@@ -49,6 +53,7 @@ pub fn main() -> ExitCode {
         Cmd::Label(args) => label::run(args),
         Cmd::Describe(args) => describe::run(args),
         Cmd::Annotate(args) => annotate::run(args),
+        Cmd::Detect(args) => detect::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

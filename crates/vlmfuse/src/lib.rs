@@ -19,6 +19,7 @@ pub mod cli;
 pub mod config;
 pub mod conn;
 pub mod describe;
+pub mod detect;
 pub mod eval;
 pub mod http;
 pub mod import;

@@ -327,6 +327,12 @@ pub struct InferClipOut {
     /// What the kinematic rules derived from the clip's `signals` track, with the evidence.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub derived: Option<vlmfuse_annotate::Annotation>,
+    /// What the detector derived from the clip's frames (`[detect]`), with the evidence.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub detected: Option<vlmfuse_detect::DetectAnnotation>,
+    /// Why the detector did not run on this clip (the round is stored without its labels).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub detect_error: Option<String>,
     pub timings_ms: Ordered<f64>,
 }
 

@@ -14,6 +14,7 @@
 //! file and running with the shipped file behave the same.
 
 mod annotate;
+mod detect;
 mod embedder;
 mod labeler;
 mod media;
@@ -22,6 +23,7 @@ mod server;
 mod ui;
 
 pub use annotate::AnnotateSection;
+pub use detect::DetectSection;
 pub use embedder::{EmbedderBackend, EmbedderConfig};
 pub use labeler::{
     EmbeddingLabelerConfig, EncoderEngine, GgufLabelerConfig, LabelerConfig, OpenAiLabelerConfig,
@@ -83,6 +85,9 @@ pub struct Config {
     /// Labels derived from the vehicle's signals (`signals` tracks).
     #[command(flatten)]
     pub annotate: AnnotateSection,
+    /// Labels derived from an object detector's tracks (off without `model`).
+    #[command(flatten)]
+    pub detect: DetectSection,
     /// The operator page (`/ui`).
     #[command(flatten)]
     pub ui: UiSection,
@@ -109,6 +114,7 @@ impl Default for Config {
             reporter: Vec::new(),
             labeler: LabelerConfig::default(),
             annotate: AnnotateSection::default(),
+            detect: DetectSection::default(),
             ui: UiSection::default(),
         }
     }
@@ -205,6 +211,16 @@ impl Config {
     pub fn validate(&self) -> anyhow::Result<()> {
         self.listen_addr()?;
         self.annotate.validate()?;
+        self.detect.validate()?;
+        if self.detect.model.is_some() {
+            for r in &self.detect.rules.labels {
+                ensure!(
+                    self.ontology.lookup(&r.label).is_some(),
+                    "detect.rules: label {:?} is not in the ontology",
+                    r.label
+                );
+            }
+        }
         self.ui.validate()?;
         if self.server.api_key.as_deref().is_some_and(str::is_empty) {
             bail!("api_key is empty; leave it out to disable authentication");

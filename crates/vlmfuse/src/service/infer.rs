@@ -38,6 +38,8 @@ struct Decoded {
 struct Processed {
     /// What the rules derived from the clip's signal track.
     derived: Option<vlmfuse_annotate::Annotation>,
+    /// What the detector derived from the clip's frames, or why it did not run.
+    detected: Option<Result<vlmfuse_detect::DetectAnnotation, String>>,
     record: RoundRecord,
     request: Value,
     reporters: Vec<(String, ReporterOut)>,
@@ -86,6 +88,9 @@ async fn label_round(
         }
     }
 }
+
+/// A clip's derived truth for a partial feedback (`None`: nothing decided or not sent).
+type Truth = Option<Vec<u8>>;
 
 /// Records a stage's time in `vlmfuse_stage_seconds` and returns it in milliseconds.
 pub(crate) fn stage(name: &'static str, start: Instant) -> f64 {
@@ -182,33 +187,79 @@ impl Service {
             decoded.push(d);
         }
         // Every reporter sees all the request's clips at once: an in-process model runs them as
-        // one batch (one vision pass, one prefill), a remote one concurrently.
-        let start = Instant::now();
+        // one batch (one vision pass, one prefill), a remote one concurrently. The detector
+        // (clip by clip, on the blocking pool) runs meanwhile: behind remote reporters it costs
+        // no time.
         let inputs: Vec<ClipInput> = decoded.iter().map(|d| d.input.clone()).collect();
-        let runs = vlmfuse_models::run_all_batch(&self.pipeline.reporters, &inputs).await;
-        let reporters_ms = stage("reporters", start);
+        let reporters = async {
+            let start = Instant::now();
+            let runs = vlmfuse_models::run_all_batch(&self.pipeline.reporters, &inputs).await;
+            (runs, stage("reporters", start))
+        };
+        let detections = async {
+            let mut out = Vec::with_capacity(inputs.len());
+            for input in &inputs {
+                let start = Instant::now();
+                let det = self.detect_clip(&input.path, &input.frames).await;
+                let ms = det.is_some().then(|| stage("detect", start));
+                out.push((det, ms));
+            }
+            out
+        };
+        let ((runs, reporters_ms), detections) = tokio::join!(reporters, detections);
+        let mut detected = Vec::with_capacity(uploads.len());
+        for (d, (det, ms)) in decoded.iter_mut().zip(detections) {
+            if let Some(ms) = ms {
+                d.timings.push(("detect".into(), ms));
+            }
+            detected.push(det);
+        }
         let mut processed = Vec::with_capacity(uploads.len());
-        for (((up, d), runs), derived) in uploads.iter().zip(decoded).zip(runs).zip(derived) {
+        for ((((up, d), runs), derived), detected) in uploads
+            .iter()
+            .zip(decoded)
+            .zip(runs)
+            .zip(derived)
+            .zip(detected)
+        {
             let mut p = self.label_and_record(up, d, runs, reporters_ms).await?;
             if let Some(a) = &derived {
                 p.request["signals"] = serde_json::to_value(a).unwrap_or_default();
             }
+            match &detected {
+                Some(Ok(a)) => {
+                    p.request["detections"] = serde_json::to_value(a).unwrap_or_default()
+                }
+                Some(Err(e)) => p.request["detections"] = json!({ "error": e }),
+                None => {}
+            }
             p.derived = derived;
+            p.detected = detected;
             processed.push(p);
         }
-        // What the vehicle's signals say, as partial feedback once the rounds are stored.
-        let feedback: Vec<Option<Vec<u8>>> = if self.cfg.annotate.feedback {
+        // What the vehicle's signals and the detector say, as partial feedback once the rounds
+        // are stored. The detector leaves out the labels the signals decided (two derived
+        // sources that disagree are refused whole).
+        let (feedback, detector_feedback): (Vec<Truth>, Vec<Truth>) = {
             let eng = self.shared.engine.read().await;
             processed
                 .iter()
                 .map(|p| {
-                    p.derived
+                    let kin = p
+                        .derived
                         .as_ref()
-                        .and_then(|a| super::annotate::truth_of(eng.ontology(), a))
+                        .and_then(|a| super::annotate::truth_of(eng.ontology(), a));
+                    let det = match (&p.detected, self.cfg.detect.feedback) {
+                        (Some(Ok(a)), true) => super::detect::truth_of(
+                            eng.ontology(),
+                            a,
+                            kin.as_deref().filter(|_| self.cfg.annotate.feedback),
+                        ),
+                        _ => None,
+                    };
+                    (kin.filter(|_| self.cfg.annotate.feedback), det)
                 })
-                .collect()
-        } else {
-            Vec::new()
+                .unzip()
         };
         let records = processed
             .iter_mut()
@@ -235,6 +286,8 @@ impl Service {
                         failed: Ordered(p.failed),
                         clip: p.clip,
                         derived: p.derived,
+                        detect_error: p.detected.as_ref().and_then(|r| r.as_ref().err().cloned()),
+                        detected: p.detected.and_then(Result::ok),
                         timings_ms: Ordered(timings),
                     }
                 })
@@ -252,21 +305,40 @@ impl Service {
         stage("fuse", fuse_start);
         drop(uploads);
         if !answer.replayed && feedback.iter().any(Option::is_some) {
-            self.kinematics_feedback(&mut answer.body, batch, feedback)
-                .await;
+            self.derived_feedback(
+                &mut answer.body,
+                batch,
+                feedback,
+                super::annotate::KINEMATICS,
+                "kinematics_feedback",
+            )
+            .await;
+        }
+        if !answer.replayed && detector_feedback.iter().any(Option::is_some) {
+            self.derived_feedback(
+                &mut answer.body,
+                batch,
+                detector_feedback,
+                super::detect::DETECTOR,
+                "detector_feedback",
+            )
+            .await;
         }
         Ok(answer)
     }
 
-    /// `[annotate] feedback = true`: each stored clip's derived labels go in as partial
-    /// feedback (source `kinematics`), and its answer gains `kinematics_feedback` (the
-    /// feedback's answer, or why it failed: the round is stored either way, and the feedback can
-    /// be sent again on `/v1/feedback`).
-    async fn kinematics_feedback(
+    /// `[annotate] feedback = true` / `[detect] feedback = true`: each stored clip's derived
+    /// labels go in as partial feedback (source `kinematics` or `detector`), and its answer
+    /// gains `field` (`kinematics_feedback`, `detector_feedback`: the feedback's answer, or why
+    /// it failed: the round is stored either way, and the feedback can be sent again on
+    /// `/v1/feedback`).
+    async fn derived_feedback(
         &self,
         body: &mut Value,
         batch: bool,
         truths: Vec<Option<Vec<u8>>>,
+        source: &str,
+        field: &str,
     ) {
         for (i, truth) in truths.into_iter().enumerate() {
             let Some(truth) = truth else { continue };
@@ -278,13 +350,11 @@ impl Service {
             let Some(round_id) = clip["round_id"].as_str().map(str::to_string) else {
                 continue;
             };
-            let res = self
-                .feedback_truth(round_id, truth, super::annotate::KINEMATICS.into())
-                .await;
-            clip["kinematics_feedback"] = match res {
+            let res = self.feedback_truth(round_id, truth, source.into()).await;
+            clip[field] = match res {
                 Ok((out, _)) => serde_json::to_value(out).unwrap_or_default(),
                 Err(e) => {
-                    tracing::warn!(error = %e, "kinematic feedback failed");
+                    tracing::warn!(error = %e, source, "derived feedback failed");
                     json!({"error": e.to_string()})
                 }
             };
@@ -450,6 +520,7 @@ impl Service {
         });
         Ok(Processed {
             derived: None,
+            detected: None,
             record: RoundRecord {
                 id: up.file_name.clone(),
                 context: context.into_iter().map(f64::from).collect(),

@@ -12,6 +12,7 @@
 pub mod annotate;
 mod browse;
 pub mod dashboard;
+pub mod detect;
 mod error;
 mod fuse;
 mod infer;

@@ -16,6 +16,9 @@ pub struct Pipeline {
     pub embedder: Option<Arc<Embedder>>,
     pub reporters: Vec<RoundReporter>,
     pub labeler: Option<Arc<dyn Labeler>>,
+    /// The object detector (`[detect] model`), run on the blocking pool; its session runs one
+    /// frame at a time.
+    pub detector: Option<Arc<vlmfuse_detect::Detector>>,
     /// Name of the labeler, as responses report it.
     pub labeler_name: String,
     /// Configured components that failed to load: `/readyz` answers 503 while any is listed.
@@ -207,6 +210,19 @@ impl Pipeline {
             tokio::task::spawn_blocking(move || spec.load())
         });
 
+        // Detector.
+        let assets = cfg.assets();
+        let detector = cfg.detect.detector_config().map(|mut dc| {
+            if dc.session.library.is_none() {
+                dc.session.library = onnx_library(&assets);
+            }
+            tokio::task::spawn_blocking(move || {
+                vlmfuse_detect::Detector::load(&dc)
+                    .map(Arc::new)
+                    .with_context(|| format!("detector {}", dc.model.display()))
+            })
+        });
+
         match embedder {
             None => p.not_configured.push("embedder: not configured".into()),
             Some(task) => match task.await {
@@ -261,6 +277,13 @@ impl Pipeline {
                 Ok(Err(e)) => p.failed.push(format!("labeler: {}", one_line(&e))),
                 Err(e) => p.failed.push(format!("labeler: load panicked: {e}")),
             },
+        }
+        if let Some(task) = detector {
+            match task.await {
+                Ok(Ok(d)) => p.detector = Some(d),
+                Ok(Err(e)) => p.failed.push(format!("detector: {}", one_line(&e))),
+                Err(e) => p.failed.push(format!("detector: load panicked: {e}")),
+            }
         }
         for f in &p.failed {
             tracing::error!("component not loaded: {f}");

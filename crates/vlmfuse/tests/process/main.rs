@@ -4,6 +4,7 @@
 
 mod annotate_cli;
 mod describe_cli;
+mod detect_cli;
 mod eval_cli;
 mod label_cli;
 mod readiness;

@@ -2,6 +2,7 @@
 //! concurrency, and the clip pipeline. One test binary for all of them, so they link once.
 
 mod concurrency;
+mod detect;
 mod errors;
 mod feedback;
 mod hardening;
