@@ -97,7 +97,11 @@ pub fn fuse_out(engine: &Engine, seq: u64, id: Option<String>, inf: &Inference) 
         posteriors: Ordered((0..l).map(|k| (label(k), inf.q[k])).collect()),
         method: engine.method().name(),
         decision: serving_predictor(engine),
-        decided_by: Ordered((0..l).map(|k| (label(k), serving_predictor(engine))).collect()),
+        decided_by: Ordered(
+            (0..l)
+                .map(|k| (label(k), serving_predictor(engine)))
+                .collect(),
+        ),
         decision_score: serving_score(engine),
         threshold: inf.thresholds.first().copied().unwrap_or(0.5),
         thresholds: (engine.threshold().mode() == ThresholdMode::PerLabel)

@@ -453,10 +453,7 @@ async fn the_state_says_who_serves_and_on_what_scores() {
         .map(|p| loss(p))
         .fold(f64::INFINITY, f64::min);
     assert!(loss(&now) <= best + 3.0, "{now} serves on {g:?}");
-    assert!(
-        g.iter().any(|c| c["loss"].as_f64().unwrap() > 0.0),
-        "{g:?}"
-    );
+    assert!(g.iter().any(|c| c["loss"].as_f64().unwrap() > 0.0), "{g:?}");
     // Every response's decision is the same predictor.
     let r = post_authed(&srv, "/v1/fuse", &round(99)).await.json();
     assert_eq!(r["decision"], st["serving"]["predictor"]);

@@ -46,10 +46,12 @@ pub enum Guardrail {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Reputation {
-    /// A softmax of each reporter's recent (discounted) mean credit, capped at `credit_cap`:
-    /// `w_i ~ exp(beta * min(m_i, cap))`. Old credit is forgotten (a reporter that turns bad
-    /// loses its influence within a few memory half-lives, one that recovers wins it back),
-    /// and above the cap a good reporter stops crowding out the others that also help.
+    /// A softmax of each reporter's recent (discounted) mean credit, its slope cut to a twentieth
+    /// beyond `credit_cap`: `w_i ~ exp(beta * (min(m_i, cap) + max(0, m_i - cap) / 20))`. Old
+    /// credit is forgotten (a reporter that turns bad loses its influence within a few memory
+    /// half-lives, one that recovers wins it back); beyond the cap a good reporter gains slowly,
+    /// so it does not crowd out the others that also help, and the better of two always ranks
+    /// higher.
     #[default]
     Discounted,
     /// The paper method's `w_i <- w_i exp(eta phi_i) / Z` (on scaled credits when `credit_half_life > 0`).
@@ -183,7 +185,8 @@ pub struct AdaptiveConfig {
     pub credit_prior_rounds: f64,
     /// `discounted`: inverse temperature `beta` of the softmax over mean scaled credits.
     pub reputation_beta: f64,
-    /// `discounted`: mean scaled credit above which a reporter gains nothing more.
+    /// `discounted`: the mean scaled credit beyond which it counts a twentieth as much, so no
+    /// reporter crowds out the others while the ranking stays that of the credits.
     pub credit_cap: f64,
     /// Fixed-share mixing after each reputation update: `w <- (1 - alpha) w + alpha / n`, so no
     /// reporter's weight ever falls below `alpha / n` and a recovered reporter can win back.
@@ -355,9 +358,7 @@ impl AdaptiveConfig {
         nonneg(self.credit_memory, "credit_memory")?;
         nonneg(self.credit_prior_rounds, "credit_prior_rounds")?;
         nonneg(self.reputation_beta, "reputation_beta")?;
-        if !self.credit_cap.is_finite() {
-            return Err("credit_cap must be finite".into());
-        }
+        nonneg(self.credit_cap, "credit_cap")?;
         if !(0.0..1.0).contains(&self.fixed_share) {
             return Err(format!(
                 "fixed_share must lie in [0, 1), got {}",

