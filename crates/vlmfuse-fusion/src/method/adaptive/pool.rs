@@ -390,11 +390,11 @@ impl Pool {
     /// known labels keep their truth.
     pub fn set_gsoft(&mut self, pos: usize, t: &[f64]) {
         let l = self.l;
-        for k in 0..l {
+        for (k, &tk) in t.iter().enumerate().take(l) {
             self.gsoft[pos * l + k] = if self.known(pos, k) {
                 self.soft[pos * l + k]
             } else {
-                t[k]
+                tk
             };
         }
     }
