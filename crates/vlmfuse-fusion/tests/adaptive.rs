@@ -161,7 +161,7 @@ fn with_no_label_dawid_skene_serves_and_starts_as_the_vote() {
         );
     }
     // Never every label on.
-    assert!(infs.iter().all(|inf| inf.pred.iter().any(|&b| b == 0)));
+    assert!(infs.iter().all(|inf| inf.pred.contains(&0)));
 }
 
 #[test]

@@ -52,7 +52,19 @@ async fn concurrent_feedback_equals_a_sequential_replay() {
             .collect(),
     );
     let n = rounds.len();
-    let srv = Arc::new(TestApp::start(&tmp.path().join("c"), Config::default()).await);
+    // Fuses from several clients are inferred against the state as it stands, which the
+    // rounds observed just before change as soon as unlabelled rounds teach. Under the default
+    // `serve = "switch"` the whole-pool Dawid-Skene learns from the first unlabelled round, so
+    // which concurrent fuse saw which observed rounds is a matter of timing (docs/METHOD.md §6,
+    // requests in flight). With the vote fallback nothing unlabelled changes an inference
+    // before the first label, so phase 1 is order-free and this test isolates what it is about:
+    // the writer serialising concurrent feedback exactly as a sequential replay would.
+    let cfg = || {
+        let mut c = Config::default();
+        c.fusion.adaptive.serve = vlmfuse_fusion::Serve::VoteFallback;
+        c
+    };
+    let srv = Arc::new(TestApp::start(&tmp.path().join("c"), cfg()).await);
 
     // Phase 1: fuse everything from several clients (no feedback yet: order cannot matter).
     let fused: Arc<Mutex<BTreeMap<usize, Value>>> = Arc::default();
@@ -104,7 +116,7 @@ async fn concurrent_feedback_equals_a_sequential_replay() {
 
     // The sequential replay: fuse in the same order of round ids, then label in the service's
     // labelling order.
-    let seq = TestApp::start(&tmp.path().join("s"), Config::default()).await;
+    let seq = TestApp::start(&tmp.path().join("s"), cfg()).await;
     let fused = fused.lock().unwrap().clone();
     let mut by_id: Vec<(String, usize)> = fused
         .iter()
