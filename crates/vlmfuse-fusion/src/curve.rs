@@ -243,8 +243,9 @@ mod tests {
 
     #[test]
     fn the_review_pick_keeps_the_disputed_rounds_and_every_test_label() {
-        // Rounds 0..70 are history; those with t % 7 == 0 are disputed (the two reporters
-        // disagree) and uncertain (q = 0.5), the rest unanimous and sure.
+        // Rounds 0..70 are history, their contexts spread along an arc; those with t % 7 == 0
+        // are disputed (the two reporters disagree) and uncertain (q = 0.5), the rest unanimous
+        // and sure. The queue spreads its ten picks over the arc and leans to disputed rounds.
         let rounds: Vec<ParsedRound> = (0..100)
             .map(|t| {
                 let reports = if t % 7 == 0 { vec![1, 0] } else { vec![1, 1] };
@@ -261,7 +262,17 @@ mod tests {
         let (h, kept) = pick_review(&rounds, 70, Some(10), &q);
         assert_eq!(kept, 10);
         let picked: Vec<usize> = (0..70).filter(|&t| h[t].truth.is_some()).collect();
-        assert_eq!(picked, (0..70).filter(|t| t % 7 == 0).collect::<Vec<_>>());
+        assert_eq!(picked.len(), 10);
+        let gaps = picked.windows(2).map(|w| w[1] - w[0]);
+        assert!(
+            gaps.max().unwrap() <= 14 && picked[0] <= 7 && picked[9] >= 62,
+            "{picked:?}"
+        );
+        // Uniform picks would hold 10/7 of the disputed rounds on average.
+        assert!(
+            picked.iter().filter(|t| *t % 7 == 0).count() >= 2,
+            "{picked:?}"
+        );
         assert!(h[70..].iter().all(|r| r.truth.is_some()));
         let (all, kept) = pick_review(&rounds, 70, None, &q);
         assert_eq!(kept, 70);

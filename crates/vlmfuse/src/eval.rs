@@ -114,9 +114,9 @@ pub struct EvalArgs {
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// How `--labelled` / `--curve` choose the history rounds that keep their truth: `random`
-    /// (uniformly, by `--seed`) or `review` (the review queue of `GET /v1/review`: the most
-    /// uncertain, disputed and novel rounds first, ranked without any truth on unsupervised
-    /// Dawid–Skene posteriors).
+    /// (uniformly, by `--seed`) or `review` (the review queue of `GET /v1/review` over the
+    /// history rounds: the rounds that best stand for the others in context, disputed rounds
+    /// weighing more; no truth is used).
     #[arg(long, value_enum, default_value_t = Pick::Random)]
     pub pick: Pick,
     /// Learning curve: for each N (e.g. `0,10,50,200,all`) and each method, one row of the

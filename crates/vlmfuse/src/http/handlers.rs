@@ -146,6 +146,35 @@ pub async fn state(State(st): State<AppState>) -> Response {
     axum::Json(st.service.state().await).into_response()
 }
 
+/// `GET /v1/review` query: `limit` (default 20) and `window` (default
+/// [`crate::service::REVIEW_DEFAULT_WINDOW`]).
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ReviewQuery {
+    limit: Option<usize>,
+    window: Option<usize>,
+}
+
+/// `GET /v1/review?limit=&window=`: the rounds a person should label next, with the reasons.
+pub async fn review(
+    State(st): State<AppState>,
+    q: Result<axum::extract::Query<ReviewQuery>, axum::extract::rejection::QueryRejection>,
+) -> Result<Response, ApiError> {
+    let axum::extract::Query(q) = q.map_err(|r| ApiError::Body {
+        status: r.status(),
+        kind: "invalid_request",
+        message: r.body_text(),
+    })?;
+    let out = st
+        .service
+        .review(
+            q.limit.unwrap_or(20),
+            q.window.unwrap_or(crate::service::REVIEW_DEFAULT_WINDOW),
+        )
+        .await?;
+    Ok(axum::Json(out).into_response())
+}
+
 /// `GET /v1/ontology`.
 pub async fn ontology(State(st): State<AppState>) -> Response {
     axum::Json(st.service.ontology().await).into_response()

@@ -122,6 +122,7 @@ pub fn routes() -> Vec<RouteDef> {
         r("post", "/v1/label", Write, post(h::label)),
         r("get", "/v1/state", Limited, get(h::state)),
         r("get", "/v1/ontology", Limited, get(h::ontology)),
+        r("get", "/v1/review", Limited, get(h::review)),
         r("get", "/healthz", Open, get(h::healthz)),
         r("get", "/readyz", Open, get(h::readyz)),
         r("get", "/metrics", Open, get(h::metrics)),

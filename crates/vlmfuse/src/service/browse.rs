@@ -74,7 +74,7 @@ fn reporter_labels<'a>(
 
 impl Service {
     /// Runs `f` on the page's read-only connection, opened on first use, off the async threads.
-    async fn with_reader<T: Send + 'static>(
+    pub(super) async fn with_reader<T: Send + 'static>(
         &self,
         f: impl FnOnce(&Store) -> Result<T, ServiceError> + Send + 'static,
     ) -> Result<T, ServiceError> {

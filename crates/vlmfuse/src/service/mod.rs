@@ -19,6 +19,7 @@ mod infer;
 mod label;
 pub mod pipeline;
 mod readiness;
+mod review;
 mod thumbs;
 pub mod writer;
 
@@ -35,6 +36,7 @@ pub use infer::Upload;
 pub use label::Labelled;
 pub use pipeline::Pipeline;
 pub use readiness::Readiness;
+pub use review::{DEFAULT_WINDOW as REVIEW_DEFAULT_WINDOW, MAX_LIMIT as REVIEW_MAX_LIMIT};
 
 use crate::config::Config;
 use crate::telemetry::Metrics;

@@ -9,6 +9,7 @@ mod hardening;
 mod infer_media;
 mod infer_pipeline;
 mod label;
+mod review;
 mod signals;
 mod support;
 mod ui;
