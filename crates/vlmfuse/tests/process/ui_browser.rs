@@ -21,11 +21,12 @@ use vlmfuse_testkit_models::fixtures::clip_embedder_toml;
 const TOKEN: &str = "operator-test-token-7f3a";
 const ROUNDS: usize = 300;
 /// The dashboard's panels, `#panel-<name>`.
-const PANELS: [&str; 5] = [
+const PANELS: [&str; 6] = [
     "reputations",
     "reliability",
     "calibration",
     "rounds",
+    "review",
     "health",
 ];
 
@@ -316,6 +317,26 @@ fn the_operator_page_shows_the_state_and_sends_feedback() {
         .as_u64()
         .unwrap()
             >= 10
+    );
+    // The review queue lists the rounds nobody labelled (the two clips), in the API's order.
+    let review: Value = authed(&srv, "/v1/review?limit=10&window=500")
+        .send()
+        .unwrap()
+        .json()
+        .unwrap();
+    let want: Vec<Value> = review["queue"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| p["round_id"].clone())
+        .collect();
+    assert_eq!(want.len(), 2, "{review}");
+    assert_eq!(
+        js(
+            &tab,
+            "[...document.querySelectorAll('#panel-review tr[data-round-id]')].map(r => r.dataset.roundId)"
+        ),
+        json!(want)
     );
     for panel in PANELS {
         shot(

@@ -525,6 +525,38 @@
     setReady("panel-rounds");
   }
 
+  // ---- panel: the review queue (GET /v1/review; docs/METHOD.md §7) ----
+  // The queue costs window² cosines, so it is fetched at start, on Refresh and at most every
+  // REVIEW_MS while the dashboard polls, not on every tick.
+  const REVIEW_MS = 30000;
+  const rq = { data: null, req: 0, at: 0 };
+  async function loadReview() {
+    const req = ++rq.req;
+    rq.at = Date.now();
+    const d = await api("/v1/review?limit=10&window=500");
+    if (req !== rq.req) return;
+    rq.data = d;
+    renderReview();
+  }
+  function renderReview() {
+    const d = rq.data;
+    if (!d || !changed("review", d)) return;
+    $("review-note").textContent = `${d.candidates} of the latest ${d.considered} rounds not fully labelled · ${d.labelled} labelled · built ${fmtTime(rq.at)}`;
+    const rows = (d.queue || []).map((p, i) => h("tr", { "data-round-id": p.round_id },
+      h("td", { class: "num" }, String(i + 1)),
+      h("td", null, h("a", { href: `#/rounds/${encodeURIComponent(p.round_id)}` }, p.round_id)),
+      h("td", { class: "num", "data-value": String(p.represents) }, String(p.represents)),
+      h("td", { class: "num", "data-value": String(p.novelty) }, p.novelty.toFixed(2)),
+      h("td", { "data-field": "disputed" }, p.disputed.length ? chips(p.disputed) : none("none")),
+      h("td", null, p.reasons.join("; "))));
+    $("review-body").replaceChildren(...(rows.length ? rows
+      : [h("tr", null, h("td", { colspan: 6 }, none("Nothing to label: every stored round of the window is labelled.")))]));
+    setReady("panel-review");
+  }
+  $("review-refresh").addEventListener("click", () => {
+    loadReview().then(() => clearBanner(), (e) => showBanner(e.message, "fetch"));
+  });
+
   // ---- round page ----
   const rv = { id: null, data: null, req: 0, touched: new Set(), formKey: null, sending: false };
   const panelRound = $("panel-round");
@@ -810,6 +842,7 @@
       const jobs = [loadSummary()];
       if (rv.id) jobs.push(loadRound(rv.id));
       else if (rp.before === null) jobs.push(loadRounds());
+      if (!rv.id && Date.now() - rq.at > REVIEW_MS) jobs.push(loadReview());
       const res = await Promise.allSettled(jobs);
       const bad = res.find((r) => r.status === "rejected");
       if (reloading) return;
