@@ -116,7 +116,8 @@ pub struct EvalArgs {
     /// How `--labelled` / `--curve` choose the history rounds that keep their truth: `random`
     /// (uniformly, by `--seed`) or `review` (the review queue of `GET /v1/review` over the
     /// history rounds: the rounds that best stand for the others in context, disputed rounds
-    /// weighing more; no truth is used).
+    /// weighing more; no truth is used); with `--curve`, `compare` runs each N with both and
+    /// `--plots` draws random picks dashed beside the queue's.
     #[arg(long, value_enum, default_value_t = Pick::Random)]
     pub pick: Pick,
     /// Learning curve: for each N (e.g. `0,10,50,200,all`) and each method, one row of the
@@ -135,19 +136,32 @@ pub struct EvalArgs {
 pub enum Pick {
     Random,
     Review,
+    /// `--curve` only: each N twice, with the review queue's picks and with random ones.
+    Compare,
 }
 
-/// The rounds with all but `keep` history truths hidden, chosen as `--pick` says.
+impl Pick {
+    pub fn name(self) -> &'static str {
+        match self {
+            Pick::Random => "random",
+            Pick::Review => "review",
+            Pick::Compare => "compare",
+        }
+    }
+}
+
+/// The rounds with all but `keep` history truths hidden, chosen by `pick`.
 fn choose_labels(
     rounds: &[ParsedRound],
     n_hist: usize,
     keep: Option<usize>,
-    args: &EvalArgs,
+    pick: Pick,
+    seed: u64,
     reporters: usize,
     l: usize,
 ) -> (Vec<ParsedRound>, usize) {
-    match args.pick {
-        Pick::Random => hide_labels(rounds, n_hist, keep, args.seed),
+    match pick {
+        Pick::Random | Pick::Compare => hide_labels(rounds, n_hist, keep, seed),
         Pick::Review => {
             let q = dawid_skene(rounds, reporters, l, DS_ITERS, DS_SMOOTHING);
             vlmfuse_fusion::curve::pick_review(rounds, n_hist, keep, &q)
@@ -251,6 +265,7 @@ pub struct EvalRun {
     /// History rounds with truth in the file.
     pub available: usize,
     pub seed: u64,
+    pub pick: Pick,
 }
 
 fn ablation_list(names: &[String]) -> anyhow::Result<Vec<String>> {
@@ -285,11 +300,15 @@ pub fn evaluate(
     let ablations = ablation_list(&args.ablations)?;
     let (engine, all_rounds) = prepare(cfg, ontology, records)?;
     let n_hist = history_len(all_rounds.len(), args.split);
+    if args.pick == Pick::Compare {
+        anyhow::bail!("--pick compare draws two curves: use it with --curve, not --labelled");
+    }
     let (rounds, labelled) = choose_labels(
         &all_rounds,
         n_hist,
         args.labelled.and_then(|k| k.limit()),
-        args,
+        args.pick,
+        args.seed,
         engine.reporters().len(),
         ontology.len(),
     );
@@ -361,6 +380,7 @@ pub fn evaluate(
             .filter(|r| r.truth.is_some())
             .count(),
         seed: args.seed,
+        pick: args.pick,
     })
 }
 
@@ -427,7 +447,7 @@ pub fn format_table(run: &EvalRun) -> String {
         run.n_hist,
         run.labelled,
         if run.labelled < run.available {
-            format!(" of {}, chosen by seed {}", run.available, run.seed)
+            format!(" of {}, {}", run.available, chosen_by(run.pick, run.seed))
         } else {
             String::new()
         },
@@ -560,6 +580,8 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
 pub struct CurvePoint {
     pub keep: Keep,
     pub labelled: usize,
+    /// How the labelled rounds were chosen (`random` or `review`).
+    pub pick: Pick,
     pub method: Method,
     pub scores: Scores,
     pub final_w: Vec<f64>,
@@ -575,6 +597,8 @@ pub struct CurveRun {
     pub available: usize,
     pub seed: u64,
     pub frozen: bool,
+    /// Whether each N was run with both picks (`--pick compare`).
+    pub compare: bool,
 }
 
 /// The methods a curve compares, in table order.
@@ -605,14 +629,19 @@ pub fn evaluate_curve(
         frozen: args.frozen,
         batch_knn: !args.per_query_knn,
     };
-    let total = (all_rounds.len() * args.curve.len() * CURVE_METHODS.len()) as u64;
+    let picks: &[Pick] = match args.pick {
+        Pick::Compare => &[Pick::Review, Pick::Random],
+        Pick::Review => &[Pick::Review],
+        Pick::Random => &[Pick::Random],
+    };
+    let total = (all_rounds.len() * args.curve.len() * CURVE_METHODS.len() * picks.len()) as u64;
     let bar = if args.quiet {
         ProgressBar::hidden()
     } else {
         let b = ProgressBar::new(total);
         b.set_style(
             ProgressStyle::with_template(
-                "{spinner} {msg:<22} [{bar:40}] {pos}/{len} rounds ({per_sec}, eta {eta})",
+                "{spinner} {msg:<30} [{bar:40}] {pos}/{len} rounds ({per_sec}, eta {eta})",
             )
             .expect("static template")
             .progress_chars("=> "),
@@ -623,37 +652,45 @@ pub fn evaluate_curve(
     let mut points = Vec::new();
     let mut done = 0u64;
     for &keep in &args.curve {
-        let (rounds, labelled) = choose_labels(
-            &all_rounds,
-            n_hist,
-            keep.limit(),
-            args,
-            engine.reporters().len(),
-            l,
-        );
-        for method in CURVE_METHODS {
-            bar.set_message(format!("{method}, N = {keep}"));
-            let c = FusionConfig {
-                method,
-                ..cfg.clone()
-            };
-            let mut fresh = Engine::new(c, ontology.clone(), engine.reporters().to_vec())?;
-            if let Some(d) = engine.dim() {
-                fresh.fix_dim(d)?;
-            }
-            let (end, outs) = replay(fresh, &rounds, &opts, &mut |_| {
-                done += 1;
-                if done.is_multiple_of(64) {
-                    bar.set_position(done);
+        for &pick in picks {
+            let (rounds, labelled) = choose_labels(
+                &all_rounds,
+                n_hist,
+                keep.limit(),
+                pick,
+                args.seed,
+                engine.reporters().len(),
+                l,
+            );
+            for method in CURVE_METHODS {
+                bar.set_message(if picks.len() > 1 {
+                    format!("{method}, N = {keep}, {}", pick.name())
+                } else {
+                    format!("{method}, N = {keep}")
+                });
+                let c = FusionConfig {
+                    method,
+                    ..cfg.clone()
+                };
+                let mut fresh = Engine::new(c, ontology.clone(), engine.reporters().to_vec())?;
+                if let Some(d) = engine.dim() {
+                    fresh.fix_dim(d)?;
                 }
-            })?;
-            points.push(CurvePoint {
-                keep,
-                labelled,
-                method,
-                scores: score_method(&rounds, &outs, l, cfg.eps),
-                final_w: end.reputations().to_vec(),
-            });
+                let (end, outs) = replay(fresh, &rounds, &opts, &mut |_| {
+                    done += 1;
+                    if done.is_multiple_of(64) {
+                        bar.set_position(done);
+                    }
+                })?;
+                points.push(CurvePoint {
+                    keep,
+                    labelled,
+                    pick,
+                    method,
+                    scores: score_method(&rounds, &outs, l, cfg.eps),
+                    final_w: end.reputations().to_vec(),
+                });
+            }
         }
     }
     bar.finish_and_clear();
@@ -666,18 +703,35 @@ pub fn evaluate_curve(
         available,
         seed: args.seed,
         frozen: args.frozen,
+        compare: picks.len() > 1,
     })
+}
+
+/// How the labelled history rounds were chosen, in words.
+fn chosen_by(pick: Pick, seed: u64) -> String {
+    match pick {
+        Pick::Random => format!("chosen by seed {seed}"),
+        Pick::Review => "chosen by the review queue".into(),
+        Pick::Compare => format!("chosen by the review queue and, for comparison, by seed {seed}"),
+    }
 }
 
 pub fn format_curve(c: &CurveRun) -> String {
     let mut s = format!(
         "learning curve: {} rounds, {} history ({} with truth), {} scored; labelled rounds \
-         chosen by seed {}{}\n\n",
+         {}{}\n\n",
         c.rounds,
         c.n_hist,
         c.available,
         c.baselines.first().map(|b| b.scores.rounds).unwrap_or(0),
-        c.seed,
+        chosen_by(
+            if c.compare {
+                Pick::Compare
+            } else {
+                c.points.first().map_or(Pick::Random, |p| p.pick)
+            },
+            c.seed
+        ),
         if c.frozen {
             "; frozen after the history"
         } else {
@@ -686,7 +740,11 @@ pub fn format_curve(c: &CurveRun) -> String {
     );
     s.push_str(&header("labelled  method", 38));
     for p in &c.points {
-        let name = format!("{:<9} {}", p.labelled, p.method);
+        let name = if c.compare {
+            format!("{:<9} {} ({})", p.labelled, p.method, p.pick.name())
+        } else {
+            format!("{:<9} {}", p.labelled, p.method)
+        };
         s.push_str(&score_line(&name, &p.scores, 38));
     }
     s.push('\n');
@@ -699,9 +757,14 @@ pub fn format_curve(c: &CurveRun) -> String {
     s.push_str("Final reputations:\n");
     for p in &c.points {
         s.push_str(&format!(
-            "  {:<9} {:<9} {}\n",
+            "  {:<9} {:<9} {}{}\n",
             p.labelled,
             p.method.name(),
+            if c.compare {
+                format!("({}) ", p.pick.name())
+            } else {
+                String::new()
+            },
             c.reporters
                 .iter()
                 .zip(&p.final_w)
@@ -727,6 +790,7 @@ fn curve_json(c: &CurveRun, args: &EvalArgs) -> Value {
         "points": c.points.iter().map(|p| json!({
             "requested": p.keep.to_string(),
             "labelled": p.labelled,
+            "pick": p.pick.name(),
             "method": p.method.name(),
             "scores": p.scores,
             "final_reputations": map_of(&c.reporters, &p.final_w),

@@ -1,7 +1,7 @@
 //! The charts `eval --plots` writes, as SVG (plotters' SVG backend needs no system fonts, so the
 //! charts render the same on a bare CI machine as on a laptop).
 
-use crate::eval::{CurveRun, EvalRun, CURVE_METHODS};
+use crate::eval::{CurveRun, EvalRun, Pick, CURVE_METHODS};
 use plotters::coord::ranged1d::SegmentValue;
 use plotters::prelude::*;
 use std::path::{Path, PathBuf};
@@ -252,7 +252,12 @@ pub fn write_curve(dir: &Path, c: &CurveRun) -> anyhow::Result<Vec<PathBuf>> {
     std::fs::create_dir_all(dir).map_err(err(dir))?;
     let mut files = vec![curve(&dir.join("curve.svg"), c)?];
     for m in CURVE_METHODS {
-        if let Some(p) = c.points.iter().rev().find(|p| p.method == m) {
+        if let Some(p) = c
+            .points
+            .iter()
+            .rev()
+            .find(|p| p.method == m && (!c.compare || p.pick == Pick::Review))
+        {
             let title = format!(
                 "Reliability, {m}, {} labelled (ECE {:.4})",
                 p.labelled, p.scores.ece
@@ -370,25 +375,59 @@ fn curve(path: &Path, c: &CurveRun) -> anyhow::Result<PathBuf> {
         }
         for (mi, m) in CURVE_METHODS.iter().enumerate() {
             let color = PALETTE[mi * 3 % PALETTE.len()];
-            let pts: Vec<(f64, f64)> = c
-                .points
-                .iter()
-                .filter(|p| p.method == *m)
-                .map(|p| {
-                    let x = ns.iter().position(|&n| n == p.labelled).unwrap_or(0) as f64;
-                    (x, get(&p.scores))
-                })
-                .collect();
-            chart
-                .draw_series(LineSeries::new(pts.clone(), color.stroke_width(3)))
-                .map_err(err(path))?
-                .label(m.name())
-                .legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3))
-                });
-            chart
-                .draw_series(pts.iter().map(|&p| Circle::new(p, 4, color.filled())))
-                .map_err(err(path))?;
+            // With `--pick compare`, the queue's picks solid and random picks dashed.
+            let picks: &[Pick] = if c.compare {
+                &[Pick::Review, Pick::Random]
+            } else {
+                &[Pick::Random]
+            };
+            for &pick in picks {
+                let pts: Vec<(f64, f64)> = c
+                    .points
+                    .iter()
+                    .filter(|p| p.method == *m && (!c.compare || p.pick == pick))
+                    .map(|p| {
+                        let x = ns.iter().position(|&n| n == p.labelled).unwrap_or(0) as f64;
+                        (x, get(&p.scores))
+                    })
+                    .collect();
+                let name = if c.compare {
+                    format!("{} ({} picks)", m.name(), pick.name())
+                } else {
+                    m.name().to_string()
+                };
+                if pick == Pick::Random && c.compare {
+                    chart
+                        .draw_series(DashedLineSeries::new(
+                            pts.clone(),
+                            10,
+                            6,
+                            color.stroke_width(2),
+                        ))
+                        .map_err(err(path))?
+                        .label(name)
+                        .legend(move |(x, y)| {
+                            PathElement::new(vec![(x, y), (x + 8, y)], color.stroke_width(2))
+                        });
+                    chart
+                        .draw_series(
+                            pts.iter()
+                                .map(|&p| TriangleMarker::new(p, 5, color.filled())),
+                        )
+                        .map_err(err(path))?;
+                } else {
+                    chart
+                        .draw_series(LineSeries::new(pts.clone(), color.stroke_width(3)))
+                        .map_err(err(path))?
+                        .label(name)
+                        .legend(move |(x, y)| {
+                            PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3))
+                        });
+                    chart
+                        .draw_series(pts.iter().map(|&p| Circle::new(p, 4, color.filled())))
+                        .map_err(err(path))?;
+                }
+            }
         }
         chart
             .configure_series_labels()

@@ -271,3 +271,71 @@ fn the_timing_is_a_line_of_its_own() {
         assert!(lines.last().unwrap().starts_with("eval took"), "{out}");
     }
 }
+
+#[test]
+fn a_curve_compares_the_review_queue_with_random_picks() {
+    let dir = tempfile::tempdir().unwrap();
+    let report = dir.path().join("curve.json");
+    let plots = dir.path().join("plots");
+    let res = bin()
+        .arg("eval")
+        .arg(data())
+        .args([
+            "--frozen", "--curve", "20,all", "--pick", "compare", "--quiet",
+        ])
+        .arg("--report")
+        .arg(&report)
+        .arg("--plots")
+        .arg(&plots)
+        .output()
+        .unwrap();
+    assert!(
+        res.status.success(),
+        "{}",
+        String::from_utf8_lossy(&res.stderr)
+    );
+    let table = String::from_utf8(res.stdout).unwrap();
+    assert!(
+        table.contains("chosen by the review queue and, for comparison, by seed 0")
+            && table.contains("20        adaptive (review)")
+            && table.contains("20        adaptive (random)"),
+        "{table}"
+    );
+    let v: Value = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let points = v["points"].as_array().unwrap();
+    assert_eq!(points.len(), 8, "2 N x 2 picks x 2 methods");
+    let at = |n: &str, pick: &str, method: &str| {
+        points
+            .iter()
+            .find(|p| p["requested"] == n && p["pick"] == pick && p["method"] == method)
+            .unwrap_or_else(|| panic!("no point {n} {pick} {method}"))["scores"]
+            .clone()
+    };
+    // 20 picked rounds are not 20 random ones; with every truth kept, the picks agree.
+    let hf = |s: Value| {
+        (
+            s["hamming"].as_f64().unwrap(),
+            s["micro_f1"].as_f64().unwrap(),
+        )
+    };
+    assert_ne!(
+        hf(at("20", "review", "adaptive")),
+        hf(at("20", "random", "adaptive"))
+    );
+    assert_eq!(
+        hf(at("all", "review", "paper")),
+        hf(at("all", "random", "paper"))
+    );
+    let svg = std::fs::read_to_string(plots.join("curve.svg")).unwrap();
+    assert!(svg.contains("adaptive (review picks)") && svg.contains("paper (random picks)"));
+
+    // Two curves need a curve.
+    let res = bin()
+        .arg("eval")
+        .arg(data())
+        .args(["--labelled", "20", "--pick", "compare", "--quiet"])
+        .output()
+        .unwrap();
+    assert!(!res.status.success());
+    assert!(String::from_utf8_lossy(&res.stderr).contains("use it with --curve"));
+}
