@@ -119,7 +119,7 @@ impl Service {
                 .into_iter()
                 .map(|p| {
                     let mut reasons = vec![format!(
-                        "stands for {} unlabelled round(s) of the window{}",
+                        "the closest queued round to {} unlabelled round(s) of the window{}",
                         p.represents,
                         if p.novelty >= 0.5 {
                             " in a scene no labelled round is close to"

@@ -773,6 +773,7 @@
         rv.touched.clear();
       }
       memo.rounds = null;
+      rq.at = 0; // the queue is rebuilt at the dashboard's next tick: this round may leave it
       const res = await Promise.allSettled([loadRound(id), loadSummary()]);
       const bad = res.find((x) => x.status === "rejected");
       if (bad) showBanner(bad.reason.message, "fetch");
