@@ -89,6 +89,40 @@ impl GlobalDs {
         self.updates += 1;
     }
 
+    /// Moves entry `pos` from the soft truths `old` to its current ones: the same arithmetic,
+    /// cell by cell, as `add(.., -1)` with `old` followed by `add(.., 1)`, in one pass over the
+    /// entry's reports (an E-step's update).
+    pub fn replace(&mut self, pool: &Pool, pos: usize, old: &[f64]) {
+        let (n, l) = (self.cells.len() / self.pos.len().max(1), self.pos.len());
+        let t = pool.gsoft(pos);
+        for i in 0..n {
+            if !pool.bank.present(pos, i) {
+                continue;
+            }
+            for (k, (&tk, &ok)) in t.iter().zip(old).enumerate() {
+                let c = &mut self.cells[i * l + k];
+                if pool.bank.report(pos, i, k) != 0 {
+                    c[0] += -ok;
+                    c[0] += tk;
+                    c[2] += -(1.0 - ok);
+                    c[2] += 1.0 - tk;
+                } else {
+                    c[1] += -ok;
+                    c[1] += tk;
+                    c[3] += -(1.0 - ok);
+                    c[3] += 1.0 - tk;
+                }
+            }
+        }
+        for ((p, &tk), &ok) in self.pos.iter_mut().zip(t).zip(old) {
+            *p += -ok;
+            *p += tk;
+        }
+        self.mass += -1.0;
+        self.mass += 1.0;
+        self.updates += 2;
+    }
+
     /// Recomputes the sums from the pool once as many incremental updates as it has entries
     /// (at least 64) have accumulated: adding and removing leaves rounding behind.
     pub fn maybe_rebuild(&mut self, pool: &Pool) {
@@ -223,6 +257,28 @@ impl DsParams {
 
     /// The same for pool entry `pos`.
     pub fn posterior_of(&self, pool: &Pool, pos: usize, eps: f64) -> Vec<f64> {
-        self.posterior(&pool.present(pos), &pool.reports(pos), eps)
+        let mut out = vec![0.0; self.l];
+        self.posterior_into(pool, pos, eps, &mut out);
+        out
+    }
+
+    /// [`DsParams::posterior_of`] into `out`, read straight from the bank (no copies of the
+    /// entry's reports): the same sums in the same order.
+    pub fn posterior_into(&self, pool: &Pool, pos: usize, eps: f64, out: &mut [f64]) {
+        let l = self.l;
+        let n = self.yes.len() / l.max(1);
+        for (k, o) in out.iter_mut().enumerate().take(l) {
+            let mut z = self.prior_logit[k];
+            for i in 0..n {
+                if pool.bank.present(pos, i) {
+                    z += if pool.bank.report(pos, i, k) != 0 {
+                        self.yes[i * l + k]
+                    } else {
+                        self.no[i * l + k]
+                    };
+                }
+            }
+            *o = clip(sigmoid(z), eps);
+        }
     }
 }

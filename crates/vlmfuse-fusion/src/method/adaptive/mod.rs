@@ -873,14 +873,16 @@ impl Adaptive {
             return;
         }
         let par = self.ds_params(cx);
+        let l = cx.l;
+        let (mut t, mut old) = (vec![0.0; l], vec![0.0; l]);
         for &pos in order {
             if self.pool.is_labelled(pos) {
                 continue;
             }
-            let t = par.posterior_of(&self.pool, pos, cx.cfg.eps);
-            self.ds.add(&self.pool, pos, -1.0);
+            par.posterior_into(&self.pool, pos, cx.cfg.eps, &mut t);
+            old.copy_from_slice(self.pool.gsoft(pos));
             self.pool.set_gsoft(pos, &t);
-            self.ds.add(&self.pool, pos, 1.0);
+            self.ds.replace(&self.pool, pos, &old);
         }
     }
 
