@@ -454,6 +454,21 @@ impl Engine {
     /// runs. Under `paper`, rounds change nothing until they are labelled. Idempotent per `seq`;
     /// call it in the order rounds were stored, with the inference the round got.
     pub fn observe(&mut self, seq: u64, round: &Round, inf: &Inference) -> Result<(), FusionError> {
+        self.observe_ahead(seq, round, inf, None)
+    }
+
+    /// [`Engine::observe`], told the context of the round that will be inferred next (an
+    /// import reads ahead): under `adaptive` with its approximate index in use, that round's
+    /// index search then runs on the helper thread beside this round's EM work. The engine it
+    /// leaves and every later result are those of [`Engine::observe`], bit for bit; it only
+    /// takes less time.
+    pub fn observe_ahead(
+        &mut self,
+        seq: u64,
+        round: &Round,
+        inf: &Inference,
+        next_context: Option<(&[f64], &crate::Beside)>,
+    ) -> Result<(), FusionError> {
         if !self.method.observes() {
             return Ok(());
         }
@@ -467,7 +482,7 @@ impl Engine {
         }
         self.fix_dim(round.context.len())?;
         let (cx, method) = self.split();
-        method.observe(&cx, seq, round, inf);
+        method.observe(&cx, seq, round, inf, next_context);
         Ok(())
     }
 

@@ -6,6 +6,7 @@
 
 pub mod bank;
 pub mod bench;
+pub mod beside;
 pub mod config;
 pub mod corr;
 pub mod curve;
@@ -21,6 +22,7 @@ pub mod signals;
 mod sorted_map;
 pub mod threshold;
 
+pub use beside::Beside;
 pub use config::{Ablations, FusionConfig, Method, ThresholdMode};
 pub use engine::{
     Engine, FeedbackOutcome, Inference, LabelExplanation, LabelledRound, ReporterStats, Round,

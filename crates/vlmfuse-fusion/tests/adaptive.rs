@@ -464,6 +464,72 @@ fn overlapping_requests_build_the_engine_a_replay_builds() {
     }
 }
 
+/// An import tells `observe` the next round's context, so that its index search runs beside
+/// this round's EM work: every inference and the final engine must be those of plain
+/// `observe`, bit for bit, with the index in use and evictions renumbering it; and a context
+/// that is not the next round's (a hint gone stale) must change nothing either.
+#[test]
+fn searching_the_next_round_ahead_changes_nothing() {
+    let l = Ontology::paper().len();
+    let events = stream(5, 300, l);
+    let mut cfg = adaptive();
+    cfg.adaptive.ann_min = 16;
+    cfg.adaptive.ann_cells = 8;
+    cfg.adaptive.ann_probe = 2;
+    cfg.adaptive.ann_ef = 12;
+    // A small cap: evictions renumber the pool and the index between searches.
+    cfg.adaptive.pool_max = 24;
+    let (plain, plain_infs) = run(&cfg, &events);
+    assert!(plain.approximate_knn(), "the index is not in use");
+    let beside = vlmfuse_fusion::Beside::new();
+    for stale in [false, true] {
+        let mut e = Engine::new(cfg.clone(), Ontology::paper(), names()).unwrap();
+        let rounds: Vec<Round> = events
+            .iter()
+            .map(|(ctx, present, reports, _)| Round {
+                context: e.normalise_context(ctx).unwrap(),
+                present: present.clone(),
+                reports: reports.clone(),
+            })
+            .collect();
+        for (t, (round, ev)) in rounds.iter().zip(&events).enumerate() {
+            let seq = t as u64;
+            let inf = e.infer(round);
+            assert_eq!(
+                serde_json::to_string(&inf).unwrap(),
+                serde_json::to_string(&plain_infs[t]).unwrap(),
+                "round {t} (stale hints: {stale}): the inference differs"
+            );
+            let next = rounds.get(t + if stale { 2 } else { 1 });
+            e.observe_ahead(
+                seq,
+                round,
+                &inf,
+                next.map(|r| (r.context.as_slice(), &beside)),
+            )
+            .unwrap();
+            if let Some(y) = &ev.3 {
+                let o = e.credit(&inf.signals, &inf.w_used, y, seq);
+                e.apply(
+                    &LabelledRound {
+                        seq,
+                        round: round.clone(),
+                        truth: y.clone(),
+                        q: inf.q.clone(),
+                    },
+                    Some(&o),
+                )
+                .unwrap();
+            }
+        }
+        assert_eq!(
+            serde_json::to_string(&e).unwrap(),
+            serde_json::to_string(&plain).unwrap(),
+            "stale hints {stale}: the engines differ"
+        );
+    }
+}
+
 /// Reporters `a`, `b`, `c` right on a label with probabilities `acc(t)` (per round `t`), on a
 /// context that is one of two scenes; two in five labels true.
 fn reliability_stream(

@@ -364,7 +364,11 @@ fn ingest(
         // then runs to the end of the file, so that every bad line is listed.
         let mut bad_line = false;
         let engine_side = (|| -> anyhow::Result<bool> {
-            for parsed in rx {
+            // Peeked: the next round's context lets the engine search its neighbours on a
+            // second thread while this round's EM work runs (`Engine::observe_ahead`).
+            let mut rx = rx.iter().peekable();
+            let beside = vlmfuse_fusion::Beside::new();
+            while let Some(parsed) = rx.next() {
                 bad_line = parsed.is_err();
                 let Parsed {
                     line,
@@ -384,7 +388,11 @@ fn ingest(
                 }
                 let inf = engine.infer(&round);
                 on_round(done.rounds, &inf);
-                engine.observe(seq, &round, &inf)?;
+                let next = match rx.peek() {
+                    Some(Ok(p)) => Some((p.round.context.as_slice(), &beside)),
+                    _ => None,
+                };
+                engine.observe_ahead(seq, &round, &inf, next)?;
                 if let Some(truth) = truth {
                     let outcome = engine.credit(&inf.signals, &inf.w_used, &truth, seq);
                     fbs.push(StoredFeedback {

@@ -129,10 +129,17 @@ impl MethodState {
         }
     }
 
-    pub fn observe(&mut self, cx: &Ctx, seq: u64, round: &Round, inf: &Inference) {
+    pub fn observe(
+        &mut self,
+        cx: &Ctx,
+        seq: u64,
+        round: &Round,
+        inf: &Inference,
+        next: Option<(&[f64], &crate::Beside)>,
+    ) {
         match self {
             MethodState::Paper(_) => {}
-            MethodState::Adaptive(a) => a.observe(cx, seq, round, inf),
+            MethodState::Adaptive(a) => a.observe(cx, seq, round, inf, next),
         }
     }
 

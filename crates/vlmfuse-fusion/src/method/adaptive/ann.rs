@@ -83,15 +83,85 @@ unsafe fn dot_i8_avx2(a: &[i8], b: &[i8]) -> i32 {
     s
 }
 
-/// Integer dot product of two codes (exact, so the same on every processor).
-#[inline]
-pub fn dot_i8(a: &[i8], b: &[i8]) -> i32 {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the feature this function is compiled for was just detected.
-        return unsafe { dot_i8_avx2(a, b) };
+/// AVX-512 VNNI: 64 codes per step. `vpdpbusd` multiplies unsigned bytes by signed ones, so
+/// the query's codes are shifted into unsigned range (`a + 128`, an exclusive or with 0x80)
+/// and `128 · Σb` (a second `vpdpbusd` against ones) is taken off again: integer arithmetic
+/// throughout, so the sum is the portable loop's exactly, a quarter of AVX2's instructions.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+unsafe fn dot_i8_vnni(a: &[i8], b: &[i8]) -> i32 {
+    use std::arch::x86_64::*;
+    let n = a.len().min(b.len());
+    let flip = _mm512_set1_epi8(-128);
+    let ones = _mm512_set1_epi8(1);
+    let (mut ab, mut sb) = (_mm512_setzero_si512(), _mm512_setzero_si512());
+    let mut i = 0;
+    while i < n {
+        // The last step loads only the bytes left (the others read as zero, and a zero `b`
+        // byte adds nothing to either sum).
+        let mask: __mmask64 = if n - i >= 64 {
+            !0
+        } else {
+            (1u64 << (n - i)) - 1
+        };
+        // SAFETY: the mask keeps both loads inside `a[i..n]` and `b[i..n]`.
+        let (va, vb) = unsafe {
+            (
+                _mm512_maskz_loadu_epi8(mask, a.as_ptr().add(i)),
+                _mm512_maskz_loadu_epi8(mask, b.as_ptr().add(i)),
+            )
+        };
+        ab = _mm512_dpbusd_epi32(ab, _mm512_xor_si512(va, flip), vb);
+        sb = _mm512_dpbusd_epi32(sb, ones, vb);
+        i += 64;
     }
-    dot_i8_body(a, b)
+    _mm512_reduce_add_epi32(ab) - 128 * _mm512_reduce_add_epi32(sb)
+}
+
+/// Which integer dot product this processor runs, decided once.
+#[derive(Clone, Copy)]
+enum DotKind {
+    Portable,
+    #[cfg(target_arch = "x86_64")]
+    Avx2,
+    #[cfg(target_arch = "x86_64")]
+    Vnni,
+}
+
+fn dot_kind() -> DotKind {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::sync::OnceLock;
+        static KIND: OnceLock<DotKind> = OnceLock::new();
+        *KIND.get_or_init(|| {
+            if std::arch::is_x86_feature_detected!("avx512f")
+                && std::arch::is_x86_feature_detected!("avx512bw")
+                && std::arch::is_x86_feature_detected!("avx512vnni")
+            {
+                DotKind::Vnni
+            } else if std::arch::is_x86_feature_detected!("avx2") {
+                DotKind::Avx2
+            } else {
+                DotKind::Portable
+            }
+        })
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    DotKind::Portable
+}
+
+/// Integer dot product of two codes with the kind [`dot_kind`] picked (exact, so the same on
+/// every processor).
+#[inline(always)]
+fn dot_i8_with(kind: DotKind, a: &[i8], b: &[i8]) -> i32 {
+    match kind {
+        DotKind::Portable => dot_i8_body(a, b),
+        // SAFETY: `dot_kind` picked each of these only after detecting its features.
+        #[cfg(target_arch = "x86_64")]
+        DotKind::Avx2 => unsafe { dot_i8_avx2(a, b) },
+        #[cfg(target_arch = "x86_64")]
+        DotKind::Vnni => unsafe { dot_i8_vnni(a, b) },
+    }
 }
 
 /// One cell's entries: pool positions (ascending), and their scales and codes stored
@@ -255,6 +325,7 @@ impl Ivf {
         let mut q = Vec::with_capacity(self.dim);
         let qs = quantise(x, &mut q);
         let d = self.dim;
+        let kind = dot_kind();
         let mut scored: Vec<(f32, usize)> = Vec::new();
         for &c in &order {
             let cell = &self.lists[c];
@@ -264,7 +335,7 @@ impl Ivf {
                 .zip(&cell.scales)
                 .zip(cell.codes.chunks_exact(d))
             {
-                scored.push((dot_i8(&q, code) as f32 * qs * s, p as usize));
+                scored.push((dot_i8_with(kind, &q, code) as f32 * qs * s, p as usize));
             }
         }
         let cmp = |a: &(f32, usize), b: &(f32, usize)| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1));
@@ -280,6 +351,46 @@ impl Ivf {
 mod tests {
     use super::*;
 
+    /// Every dot product this processor can run equals the plain sum, at every length
+    /// (whole steps, tails, empty) and at the extremes of the codes.
+    #[test]
+    fn every_dot_product_kind_is_the_plain_sum() {
+        let mut kinds = vec![DotKind::Portable];
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx2") {
+                kinds.push(DotKind::Avx2);
+            }
+            if std::arch::is_x86_feature_detected!("avx512f")
+                && std::arch::is_x86_feature_detected!("avx512bw")
+                && std::arch::is_x86_feature_detected!("avx512vnni")
+            {
+                kinds.push(DotKind::Vnni);
+            }
+        }
+        let mut state = 0x9e37_79b9u32;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 17;
+            state ^= state << 5;
+            (state >> 24) as u8 as i8
+        };
+        for n in (0..=130).chain([255, 256, 511, 512, 513, 1024]) {
+            let a: Vec<i8> = (0..n).map(|_| next()).collect();
+            let b: Vec<i8> = (0..n).map(|_| next()).collect();
+            let naive: i32 = a.iter().zip(&b).map(|(x, y)| *x as i32 * *y as i32).sum();
+            for &k in &kinds {
+                assert_eq!(dot_i8_with(k, &a, &b), naive, "n = {n}");
+            }
+        }
+        for (x, y) in [(-128i8, -128i8), (-128, 127), (127, -128), (127, 127)] {
+            let (a, b) = (vec![x; 1024], vec![y; 1024]);
+            for &k in &kinds {
+                assert_eq!(dot_i8_with(k, &a, &b), 1024 * x as i32 * y as i32);
+            }
+        }
+    }
+
     #[test]
     fn codes_keep_the_cosine_and_dot_products_are_exact() {
         let x: Vec<f32> = (0..100)
@@ -291,16 +402,16 @@ mod tests {
         let (mut cx, mut cy) = (Vec::new(), Vec::new());
         let (sx, sy) = (quantise(&x, &mut cx), quantise(&y, &mut cy));
         let exact: f32 = x.iter().zip(&y).map(|(a, b)| a * b).sum();
-        let approx = dot_i8(&cx, &cy) as f32 * sx * sy;
+        let approx = dot_i8_with(dot_kind(), &cx, &cy) as f32 * sx * sy;
         assert!(
             (exact - approx).abs() < 0.02 * exact.abs().max(1.0),
             "{exact} {approx}"
         );
         let naive: i32 = cx.iter().zip(&cy).map(|(a, b)| *a as i32 * *b as i32).sum();
-        assert_eq!(dot_i8(&cx, &cy), naive);
+        assert_eq!(dot_i8_with(dot_kind(), &cx, &cy), naive);
         assert_eq!(dot_i8_body(&cx, &cy), naive);
         // Extremes: 512 products of -127 * -127 stay far inside i32.
         let big = vec![-127i8; 512];
-        assert_eq!(dot_i8(&big, &big), 512 * 127 * 127);
+        assert_eq!(dot_i8_with(dot_kind(), &big, &big), 512 * 127 * 127);
     }
 }

@@ -1057,7 +1057,21 @@ impl Adaptive {
 
     /// Adds an unlabelled round to the pool with its soft truth, then runs the EM chunk. Call it
     /// only when [`Adaptive::wants`] the round.
-    pub fn observe(&mut self, cx: &Ctx, seq: u64, round: &Round, inf: &Inference) {
+    ///
+    /// `next`: the context of the round the caller will infer next, when it knows it (an
+    /// import does), and a helper thread. With the approximate index in use, that context's
+    /// candidates are then searched on the helper while this round's EM chunk runs (the
+    /// E-steps never read the index), and the next scan takes them if nothing changed the
+    /// index in between. The results are those without `next`, bit for bit (tested); only the
+    /// time differs.
+    pub fn observe(
+        &mut self,
+        cx: &Ctx,
+        seq: u64,
+        round: &Round,
+        inf: &Inference,
+        next: Option<(&[f64], &crate::Beside)>,
+    ) {
         let scan = self.scan_for(cx, &round.context, inf.scan.as_ref());
         let soft = self.soft_truth(cx, &inf.signals, Some(&inf.q));
         let pos = self.pool.insert(
@@ -1074,7 +1088,26 @@ impl Adaptive {
         self.ds_join(cx, pos);
         self.retain(cx);
         self.maybe_rebase(cx);
-        self.em_chunk(cx);
+        match (next, self.pool.take_ann()) {
+            (Some((x, beside)), Some(ivf)) => {
+                let job = self.pool.ahead_job();
+                let x = x.to_vec();
+                let (ivf, ahead) = beside.run(
+                    move || {
+                        let ahead = job.run(&ivf, &x);
+                        (ivf, ahead)
+                    },
+                    || self.em_chunk(cx),
+                );
+                self.pool.put_ann(ivf, Some(ahead));
+            }
+            (_, ivf) => {
+                if let Some(ivf) = ivf {
+                    self.pool.put_ann(ivf, None);
+                }
+                self.em_chunk(cx);
+            }
+        }
     }
 
     /// The bounded pool (`pool_max`, docs/METHOD.md §6): every labelled round stays; once the

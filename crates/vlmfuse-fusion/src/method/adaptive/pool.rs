@@ -87,6 +87,47 @@ pub struct Pool {
     ann_cells: usize,
     ann_probe: usize,
     ann_ef: usize,
+    /// The index's candidates for a context, found ahead of the round's scan while the index
+    /// was out of the pool ([`Pool::take_ann`]); used by the scan only for that very context
+    /// and index state. Not state: never saved, and a scan with it is the scan without it.
+    #[serde(skip)]
+    ahead: Option<Ahead>,
+}
+
+/// [`Ivf::candidates`] for one context (its f32 copy), found for the index as it stood at
+/// `pool_len` entries in eviction epoch `epoch` (every change to the index changes one of
+/// the two).
+#[derive(Debug, Clone)]
+pub struct Ahead {
+    x: Vec<f32>,
+    pool_len: usize,
+    epoch: u64,
+    found: (Vec<usize>, u32),
+}
+
+/// A search for [`Ahead`] candidates, from [`Pool::ahead_job`].
+#[derive(Debug, Clone, Copy)]
+pub struct AheadJob {
+    probe: usize,
+    ef: usize,
+    pool_len: usize,
+    epoch: u64,
+}
+
+impl AheadJob {
+    /// The index's candidates for context `x` (see [`Pool::ann_scan`]) on the index taken out
+    /// by [`Pool::take_ann`]: the next scan of `x` uses them if the index has not changed by
+    /// then. A pure function of the index and `x`, so finding them ahead changes no result.
+    pub fn run(self, ivf: &Ivf, x: &[f64]) -> Ahead {
+        let xf: Vec<f32> = x.iter().map(|&v| v as f32).collect();
+        let found = ivf.candidates(&xf, self.probe, self.ef);
+        Ahead {
+            x: xf,
+            pool_len: self.pool_len,
+            epoch: self.epoch,
+            found,
+        }
+    }
 }
 
 /// `max(0, s)^tau`.
@@ -129,6 +170,7 @@ impl Pool {
             ann_cells: 0,
             ann_probe: 0,
             ann_ef: 0,
+            ahead: None,
         }
     }
 
@@ -177,6 +219,31 @@ impl Pool {
         }
     }
 
+    /// Takes the approximate index out of the pool (`None` when it is not in use), so that
+    /// [`Pool::find_ahead`] can search it on another thread while work that never reads it
+    /// (EM's E-steps) goes on. Give it back with [`Pool::put_ann`] before anything else.
+    pub fn take_ann(&mut self) -> Option<Ivf> {
+        self.ann.take()
+    }
+
+    /// Puts back the index [`Pool::take_ann`] took, with the candidates found meanwhile.
+    pub fn put_ann(&mut self, ivf: Ivf, ahead: Option<Ahead>) {
+        debug_assert!(self.ann.is_none());
+        self.ann = Some(ivf);
+        self.ahead = ahead;
+    }
+
+    /// What [`AheadJob::run`] needs of the pool as it is now, so that the search can run on
+    /// another thread without borrowing the pool.
+    pub fn ahead_job(&self) -> AheadJob {
+        AheadJob {
+            probe: self.ann_probe,
+            ef: self.ann_ef.max(self.kmax),
+            pool_len: self.len(),
+            epoch: self.epoch,
+        }
+    }
+
     /// [`Pool::scan`] through the approximate index: its `ann_ef` candidates are scored exactly
     /// and ranked as the exact scan ranks; the entries whose list the round may enter are
     /// looked for among them.
@@ -184,7 +251,17 @@ impl Pool {
         let len = self.len();
         let m = self.kmax.min(len);
         let xf: Vec<f32> = x.iter().map(|&v| v as f32).collect();
-        let (mut cand, cell) = ivf.candidates(&xf, self.ann_probe, self.ann_ef.max(self.kmax));
+        let (mut cand, cell) = match &self.ahead {
+            Some(a)
+                if a.pool_len == len
+                    && a.epoch == self.epoch
+                    && a.x.len() == xf.len()
+                    && a.x.iter().zip(&xf).all(|(p, q)| p.to_bits() == q.to_bits()) =>
+            {
+                a.found.clone()
+            }
+            _ => ivf.candidates(&xf, self.ann_probe, self.ann_ef.max(self.kmax)),
+        };
         cand.sort_unstable();
         #[cfg(target_arch = "x86_64")]
         for &j in &cand {
