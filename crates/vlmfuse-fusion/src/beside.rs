@@ -186,7 +186,7 @@ mod tests {
                 (std::thread::current().name().map(String::from), early)
             },
             || {
-                std::thread::sleep(Duration::from_millis(50));
+                std::thread::sleep(Duration::from_millis(250));
                 flag.store(true, Ordering::Release);
             },
         );

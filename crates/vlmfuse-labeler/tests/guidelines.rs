@@ -202,7 +202,7 @@ fn reading_never_panics_on_arbitrary_text() {
         let mut t = String::new();
         for _ in 0..n {
             t.push_str(pieces[(rng.next_u64() % pieces.len() as u64) as usize]);
-            if rng.next_u64() % 3 != 0 {
+            if !rng.next_u64().is_multiple_of(3) {
                 t.push(' ');
             }
         }
