@@ -87,6 +87,16 @@ pub(crate) fn scan_f32(mirror: &[f32], x: &[f32], dim: usize, out: &mut Vec<f32>
     out.extend(mirror.chunks_exact(dim).map(|c| dot_f32_body(c, x)));
 }
 
+/// A compact bank's [`Bank::sim`] of `x` to each of the entries `pos`, on its rows (`dim`
+/// f32 each) held apart from the bank ([`Bank::take_rows`]): the same function, so the same
+/// bits.
+pub fn sims_in(rows: &[f32], dim: usize, x: &[f64], pos: &[usize], out: &mut Vec<f64>) {
+    out.extend(
+        pos.iter()
+            .map(|&j| dot_f32(x, &rows[j * dim..(j + 1) * dim])),
+    );
+}
+
 /// One neighbour: position in the bank and cosine similarity.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Neighbour {
@@ -192,6 +202,31 @@ impl Bank {
             dot_f32(x, &self.mirror[pos * self.dim..(pos + 1) * self.dim])
         } else {
             dot(x, self.context(pos))
+        }
+    }
+
+    /// [`Bank::sim`] of `x` to each of the entries `pos`, into `out` in that order.
+    pub fn sims(&self, x: &[f64], pos: &[usize], out: &mut Vec<f64>) {
+        out.clear();
+        if self.compact {
+            sims_in(&self.mirror, self.dim, x, pos, out);
+        } else {
+            out.extend(pos.iter().map(|&j| self.sim(x, j)));
+        }
+    }
+
+    /// Takes a compact bank's rows out (`None` for a bank that keeps f64 contexts), so that
+    /// another thread can score candidates against them ([`sims_in`]) while work that never
+    /// reads a context goes on; [`Bank::put_rows`] gives them back before anything else.
+    pub fn take_rows(&mut self) -> Option<Vec<f32>> {
+        self.compact.then(|| std::mem::take(&mut self.mirror))
+    }
+
+    /// Gives back the rows [`Bank::take_rows`] took.
+    pub fn put_rows(&mut self, rows: Option<Vec<f32>>) {
+        if let Some(rows) = rows {
+            debug_assert!(self.mirror.is_empty());
+            self.mirror = rows;
         }
     }
 
@@ -534,6 +569,52 @@ mod tests {
     fn unit(v: &[f64]) -> Vec<f64> {
         let n = v.iter().map(|x| x * x).sum::<f64>().sqrt();
         v.iter().map(|x| x / n).collect()
+    }
+
+    /// The batched cosines, in the bank or on its rows taken out, are `sim`'s bit for bit.
+    #[test]
+    fn batched_similarities_are_sim_bit_for_bit() {
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut rnd = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+        };
+        for dim in [1usize, 3, 4, 5, 8, 31, 512, 515] {
+            for compact in [true, false] {
+                let mut b = if compact {
+                    Bank::new_compact(2, 1)
+                } else {
+                    Bank::new(2, 1)
+                };
+                for s in 0..23u64 {
+                    let v: Vec<f64> = (0..dim).map(|_| rnd()).collect();
+                    b.push(s, &unit(&v), &[true, false], &[1, 0], &[1]);
+                }
+                let x = unit(&(0..dim).map(|_| rnd()).collect::<Vec<_>>());
+                for count in [0usize, 1, 3, 4, 5, 8, 11, 23] {
+                    let pos: Vec<usize> = (0..count).map(|i| (i * 7 + 3) % 23).collect();
+                    let mut got = vec![f64::NAN; 2];
+                    b.sims(&x, &pos, &mut got);
+                    let want: Vec<u64> = pos.iter().map(|&j| b.sim(&x, j).to_bits()).collect();
+                    let bits = |v: &[f64]| v.iter().map(|v| v.to_bits()).collect::<Vec<u64>>();
+                    assert_eq!(
+                        bits(&got),
+                        want,
+                        "dim {dim}, compact {compact}, {count} entries"
+                    );
+                    let rows = b.take_rows();
+                    assert_eq!(rows.is_some(), compact);
+                    if let Some(rows) = &rows {
+                        let mut apart = Vec::new();
+                        sims_in(rows, dim, &x, &pos, &mut apart);
+                        assert_eq!(bits(&apart), want, "dim {dim}, {count} entries, apart");
+                    }
+                    b.put_rows(rows);
+                }
+            }
+        }
     }
 
     #[test]

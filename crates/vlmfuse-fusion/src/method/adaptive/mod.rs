@@ -1092,13 +1092,16 @@ impl Adaptive {
             (Some((x, beside)), Some(ivf)) => {
                 let job = self.pool.ahead_job();
                 let x = x.to_vec();
-                let (ivf, ahead) = beside.run(
+                // The bank's rows go with the index: the EM chunk reads no context.
+                let rows = self.pool.take_rows();
+                let (ivf, rows, ahead) = beside.run(
                     move || {
-                        let ahead = job.run(&ivf, &x);
-                        (ivf, ahead)
+                        let ahead = job.run(&ivf, rows.as_deref(), &x);
+                        (ivf, rows, ahead)
                     },
                     || self.em_chunk(cx),
                 );
+                self.pool.put_rows(rows);
                 self.pool.put_ann(ivf, Some(ahead));
             }
             (_, ivf) => {

@@ -102,7 +102,12 @@ pub struct Ahead {
     x: Vec<f32>,
     pool_len: usize,
     epoch: u64,
+    /// The candidates in ascending order, and `x`'s cell.
     found: (Vec<usize>, u32),
+    /// The candidates' exact cosines to `xd` (the f64 context), when the job had the bank's
+    /// rows ([`Bank::take_rows`]): what [`Pool::ann_scan`] would compute, so it uses them for
+    /// the very same context only.
+    exact: Option<(Vec<f64>, Vec<f64>)>,
 }
 
 /// A search for [`Ahead`] candidates, from [`Pool::ahead_job`].
@@ -112,20 +117,34 @@ pub struct AheadJob {
     ef: usize,
     pool_len: usize,
     epoch: u64,
+    dim: usize,
 }
 
 impl AheadJob {
     /// The index's candidates for context `x` (see [`Pool::ann_scan`]) on the index taken out
     /// by [`Pool::take_ann`]: the next scan of `x` uses them if the index has not changed by
     /// then. A pure function of the index and `x`, so finding them ahead changes no result.
-    pub fn run(self, ivf: &Ivf, x: &[f64]) -> Ahead {
+    ///
+    /// With `rows` (a compact bank's, from [`Bank::take_rows`]) it also scores the candidates
+    /// exactly, as the scan would: the largest part of a scan's own work at scale is reading
+    /// those scattered rows, and here it runs beside the EM chunk too.
+    pub fn run(self, ivf: &Ivf, rows: Option<&[f32]>, x: &[f64]) -> Ahead {
         let xf: Vec<f32> = x.iter().map(|&v| v as f32).collect();
-        let found = ivf.candidates(&xf, self.probe, self.ef);
+        let (mut cand, cell) = ivf.candidates(&xf, self.probe, self.ef);
+        cand.sort_unstable();
+        let exact = rows
+            .filter(|r| self.dim > 0 && r.len() == self.pool_len * self.dim)
+            .map(|r| {
+                let mut sims = Vec::with_capacity(cand.len());
+                crate::bank::sims_in(r, self.dim, x, &cand, &mut sims);
+                (x.to_vec(), sims)
+            });
         Ahead {
             x: xf,
             pool_len: self.pool_len,
             epoch: self.epoch,
-            found,
+            found: (cand, cell),
+            exact,
         }
     }
 }
@@ -241,7 +260,18 @@ impl Pool {
             ef: self.ann_ef.max(self.kmax),
             pool_len: self.len(),
             epoch: self.epoch,
+            dim: self.bank.dim(),
         }
+    }
+
+    /// See [`Bank::take_rows`]: for [`AheadJob::run`] while the EM chunk runs.
+    pub fn take_rows(&mut self) -> Option<Vec<f32>> {
+        self.bank.take_rows()
+    }
+
+    /// Gives back the rows [`Pool::take_rows`] took.
+    pub fn put_rows(&mut self, rows: Option<Vec<f32>>) {
+        self.bank.put_rows(rows)
     }
 
     /// [`Pool::scan`] through the approximate index: its `ann_ef` candidates are scored exactly
@@ -251,23 +281,37 @@ impl Pool {
         let len = self.len();
         let m = self.kmax.min(len);
         let xf: Vec<f32> = x.iter().map(|&v| v as f32).collect();
-        let (mut cand, cell) = match &self.ahead {
+        let same = |a: &[f64], b: &[f64]| {
+            a.len() == b.len() && a.iter().zip(b).all(|(p, q)| p.to_bits() == q.to_bits())
+        };
+        let (cand, cell, scored) = match &self.ahead {
             Some(a)
                 if a.pool_len == len
                     && a.epoch == self.epoch
                     && a.x.len() == xf.len()
                     && a.x.iter().zip(&xf).all(|(p, q)| p.to_bits() == q.to_bits()) =>
             {
-                a.found.clone()
+                let scored = a
+                    .exact
+                    .as_ref()
+                    .filter(|(xd, _)| same(xd, x))
+                    .map(|(_, sims)| sims.clone());
+                (a.found.0.clone(), a.found.1, scored)
             }
-            _ => ivf.candidates(&xf, self.ann_probe, self.ann_ef.max(self.kmax)),
+            _ => {
+                let (mut cand, cell) =
+                    ivf.candidates(&xf, self.ann_probe, self.ann_ef.max(self.kmax));
+                cand.sort_unstable();
+                (cand, cell, None)
+            }
         };
-        cand.sort_unstable();
         #[cfg(target_arch = "x86_64")]
-        for &j in &cand {
-            let row = self.bank.f32_row(j).as_ptr() as *const i8;
-            // SAFETY: a prefetch is a hint; the pointer is the start of a live slice.
-            unsafe { std::arch::x86_64::_mm_prefetch(row, std::arch::x86_64::_MM_HINT_T0) };
+        if scored.is_none() {
+            for &j in &cand {
+                let row = self.bank.f32_row(j).as_ptr() as *const i8;
+                // SAFETY: a prefetch is a hint; the pointer is the start of a live slice.
+                unsafe { std::arch::x86_64::_mm_prefetch(row, std::arch::x86_64::_MM_HINT_T0) };
+            }
         }
         // What the round's inference reads of its neighbours next (soft truths, reports),
         // for every candidate: the neighbours are among them.
@@ -278,10 +322,14 @@ impl Pool {
         // ranking by weight is ranking by cosine, so only the kept neighbours' weights are
         // computed.
         let by_sim = self.half_life <= 0.0 && self.worst_sim.len() == len;
+        let sims = scored.unwrap_or_else(|| {
+            let mut sims = Vec::with_capacity(cand.len());
+            self.bank.sims(x, &cand, &mut sims);
+            sims
+        });
         let top = if by_sim {
             let mut best: Vec<(usize, f64)> = Vec::with_capacity(cand.len());
-            for &j in &cand {
-                let sim = self.bank.sim(x, j);
+            for (&j, &sim) in cand.iter().zip(&sims) {
                 if sim >= self.worst_sim[j] {
                     rev.push((j, sim));
                 }
@@ -290,8 +338,7 @@ impl Pool {
             self.best_by_sim(best, m, at)
         } else {
             let mut top = Vec::with_capacity(cand.len());
-            for &j in &cand {
-                let sim = self.bank.sim(x, j);
+            for (&j, &sim) in cand.iter().zip(&sims) {
                 top.push(self.nb_at(j, sim, at));
                 if self.may_enter(j, sim, at) {
                     rev.push((j, sim));
@@ -992,6 +1039,60 @@ mod tests {
                 .map(|v| v + spread * rnd(state))
                 .collect::<Vec<_>>(),
         )
+    }
+
+    /// Candidates scored ahead on the rows taken out of the bank give the scan the fresh scan
+    /// gives, for the context they were scored for; for one that differs only below f32's
+    /// precision (the same candidates) the cosines are computed afresh, not taken.
+    #[test]
+    fn cosines_scored_ahead_serve_only_their_own_context() {
+        let (dim, count) = (24, 900);
+        let mut state = 5u64;
+        let centres: Vec<Vec<f64>> = (0..12)
+            .map(|_| (0..dim).map(|_| rnd(&mut state)).collect())
+            .collect();
+        let mut pool = Pool::new(1, 1, 10, 4.0, 0.0)
+            .compact(true)
+            .approximate(300, 16, 4, 40);
+        for s in 0..count as u64 {
+            let x = clustered(&mut state, &centres, 0.5);
+            let scan = pool.scan(&x, s);
+            pool.insert(s, &x, &[true], &[0], &[0.0], false, s, &scan);
+        }
+        assert!(pool.ann_active());
+        let x = clustered(&mut state, &centres, 0.5);
+        // The same context moved by 2^-35 of one coordinate: its f32 copy, and so its
+        // candidates, are those of `x`; its exact cosines are not.
+        let mut near = x.clone();
+        near[0] *= 1.0 + 2f64.powi(-35);
+        assert_eq!(near[0] as f32, x[0] as f32);
+        let fresh = |q: &[f64]| pool.clone().scan(q, 7);
+        let (want_x, want_near) = (fresh(&x), fresh(&near));
+        let differ = want_x
+            .top
+            .iter()
+            .zip(&want_near.top)
+            .any(|(a, b)| a.sim.to_bits() != b.sim.to_bits());
+        assert!(differ, "the two contexts must differ in some cosine");
+        let bits = |s: &Scan| {
+            s.top
+                .iter()
+                .map(|n| (n.pos, n.sim.to_bits(), n.key.to_bits()))
+                .chain(s.rev.iter().map(|&(j, sim)| (j as u32, sim.to_bits(), 0)))
+                .collect::<Vec<_>>()
+        };
+        for (q, want) in [(&x, &want_x), (&near, &want_near)] {
+            let mut ahead = pool.clone();
+            let job = ahead.ahead_job();
+            let ivf = ahead.take_ann().unwrap();
+            let rows = ahead.take_rows();
+            assert!(rows.is_some(), "a compact bank lends its rows");
+            let found = job.run(&ivf, rows.as_deref(), &x);
+            assert!(found.exact.is_some());
+            ahead.put_rows(rows);
+            ahead.put_ann(ivf, Some(found));
+            assert_eq!(bits(&ahead.scan(q, 7)), bits(want));
+        }
     }
 
     #[test]
