@@ -1093,7 +1093,7 @@ impl Adaptive {
                 let job = self.pool.ahead_job();
                 let x = x.to_vec();
                 // The bank's rows go with the index: the EM chunk reads no context.
-                let rows = self.pool.take_rows();
+                let rows = self.pool.bank.take_rows();
                 let (ivf, rows, ahead) = beside.run(
                     move || {
                         let ahead = job.run(&ivf, rows.as_deref(), &x);
@@ -1101,7 +1101,7 @@ impl Adaptive {
                     },
                     || self.em_chunk(cx),
                 );
-                self.pool.put_rows(rows);
+                self.pool.bank.put_rows(rows);
                 self.pool.put_ann(ivf, Some(ahead));
             }
             (_, ivf) => {

@@ -264,16 +264,6 @@ impl Pool {
         }
     }
 
-    /// See [`Bank::take_rows`]: for [`AheadJob::run`] while the EM chunk runs.
-    pub fn take_rows(&mut self) -> Option<Vec<f32>> {
-        self.bank.take_rows()
-    }
-
-    /// Gives back the rows [`Pool::take_rows`] took.
-    pub fn put_rows(&mut self, rows: Option<Vec<f32>>) {
-        self.bank.put_rows(rows)
-    }
-
     /// [`Pool::scan`] through the approximate index: its `ann_ef` candidates are scored exactly
     /// and ranked as the exact scan ranks; the entries whose list the round may enter are
     /// looked for among them.
@@ -1085,11 +1075,11 @@ mod tests {
             let mut ahead = pool.clone();
             let job = ahead.ahead_job();
             let ivf = ahead.take_ann().unwrap();
-            let rows = ahead.take_rows();
+            let rows = ahead.bank.take_rows();
             assert!(rows.is_some(), "a compact bank lends its rows");
             let found = job.run(&ivf, rows.as_deref(), &x);
             assert!(found.exact.is_some());
-            ahead.put_rows(rows);
+            ahead.bank.put_rows(rows);
             ahead.put_ann(ivf, Some(found));
             assert_eq!(bits(&ahead.scan(q, 7)), bits(want));
         }
