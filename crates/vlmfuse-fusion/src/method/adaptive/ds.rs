@@ -68,12 +68,12 @@ impl GlobalDs {
         let (n, l) = (self.cells.len() / self.pos.len().max(1), self.pos.len());
         let t = pool.gsoft(pos);
         for i in 0..n {
-            if !pool.bank.present(pos, i) {
+            if pool.present_row(pos)[i] == 0 {
                 continue;
             }
             for (k, &tk) in t.iter().enumerate() {
                 let c = &mut self.cells[i * l + k];
-                if pool.bank.report(pos, i, k) != 0 {
+                if pool.reports_row(pos)[i * l + k] != 0 {
                     c[0] += sign * tk;
                     c[2] += sign * (1.0 - tk);
                 } else {
@@ -96,12 +96,12 @@ impl GlobalDs {
         let (n, l) = (self.cells.len() / self.pos.len().max(1), self.pos.len());
         let t = pool.gsoft(pos);
         for i in 0..n {
-            if !pool.bank.present(pos, i) {
+            if pool.present_row(pos)[i] == 0 {
                 continue;
             }
             for (k, (&tk, &ok)) in t.iter().zip(old).enumerate() {
                 let c = &mut self.cells[i * l + k];
-                if pool.bank.report(pos, i, k) != 0 {
+                if pool.reports_row(pos)[i * l + k] != 0 {
                     c[0] += -ok;
                     c[0] += tk;
                     c[2] += -(1.0 - ok);
@@ -262,16 +262,16 @@ impl DsParams {
         out
     }
 
-    /// [`DsParams::posterior_of`] into `out`, read straight from the bank (no copies of the
-    /// entry's reports): the same sums in the same order.
+    /// [`DsParams::posterior_of`] into `out`, read straight from the entry's pool row (no
+    /// copies of its reports): the same sums in the same order.
     pub fn posterior_into(&self, pool: &Pool, pos: usize, eps: f64, out: &mut [f64]) {
         let l = self.l;
         let n = self.yes.len() / l.max(1);
         for (k, o) in out.iter_mut().enumerate().take(l) {
             let mut z = self.prior_logit[k];
             for i in 0..n {
-                if pool.bank.present(pos, i) {
-                    z += if pool.bank.report(pos, i, k) != 0 {
+                if pool.present_row(pos)[i] != 0 {
+                    z += if pool.reports_row(pos)[i * l + k] != 0 {
                         self.yes[i * l + k]
                     } else {
                         self.no[i * l + k]

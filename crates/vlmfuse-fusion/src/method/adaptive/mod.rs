@@ -23,6 +23,7 @@ pub mod config;
 pub mod ds;
 pub mod gate;
 pub mod pool;
+mod rows;
 
 pub use calibrate::Calibrator;
 pub use config::{AdaptiveConfig, Guardrail, Reputation, Serve, SoftTruth, WeightNorm};
@@ -344,14 +345,15 @@ impl Adaptive {
         let g = &mut self.global;
         g.updates += 1;
         let t = pool.soft(pos);
+        let (present, reps) = (pool.present_row(pos), pool.reports_row(pos));
         for i in 0..n {
-            if !pool.bank.present(pos, i) {
+            if present[i] == 0 {
                 continue;
             }
             for k in 0..l {
                 let tk = t[k];
                 let c = &mut g.cells[i * l + k];
-                if pool.bank.report(pos, i, k) != 0 {
+                if reps[i * l + k] != 0 {
                     c[0] += wgt * tk;
                     c[2] += wgt * (1.0 - tk);
                 } else {
@@ -370,17 +372,17 @@ impl Adaptive {
         self.rho_version += 1;
         // Error co-occurrence of labelled rounds: with y = 1 reporter i errs iff r_i = 0.
         for i in 0..n {
-            if !pool.bank.present(pos, i) {
+            if present[i] == 0 {
                 continue;
             }
             for j in i + 1..n {
-                if !pool.bank.present(pos, j) {
+                if present[j] == 0 {
                     continue;
                 }
                 let base = pair_index(n, i, j) * l;
                 for k in 0..l {
-                    let ri = pool.bank.report(pos, i, k) as usize;
-                    let rj = pool.bank.report(pos, j, k) as usize;
+                    let ri = reps[i * l + k] as usize;
+                    let rj = reps[j * l + k] as usize;
                     let (ei, ej) = if t[k] > 0.5 {
                         (1 - ri, 1 - rj)
                     } else {
@@ -608,14 +610,15 @@ impl Adaptive {
                 if pool.is_partial(pos) && full > w {
                     // Known labels of a partly labelled neighbour weigh as labelled ones.
                     let t = pool.soft(pos);
+                    let (present, reps) = (pool.present_row(pos), pool.reports_row(pos));
                     for (m, &i) in coalition.iter().enumerate() {
-                        if !pool.bank.present(pos, i) {
+                        if present[i] == 0 {
                             continue;
                         }
                         for k in (0..l).filter(|&k| pool.known(pos, k)) {
                             let x = full - w;
                             let c = &mut acc[m * l + k];
-                            let on = pool.bank.report(pos, i, k) != 0;
+                            let on = reps[i * l + k] != 0;
                             match on {
                                 true => {
                                     c[0] += x * t[k];
@@ -632,10 +635,11 @@ impl Adaptive {
                 if w == 0.0 {
                     continue;
                 }
+                // One row holds all of these (`rows.rs`): a neighbour's few cache lines.
                 let t = pool.soft(pos);
-                let reps = pool.bank.reports_of(pos);
+                let (present, reps) = (pool.present_row(pos), pool.reports_row(pos));
                 for (m, &i) in coalition.iter().enumerate() {
-                    if !pool.bank.present(pos, i) {
+                    if present[i] == 0 {
                         continue;
                     }
                     // Branch-free: a report of 1 adds `w t` and `w (1 - t)` to the first and

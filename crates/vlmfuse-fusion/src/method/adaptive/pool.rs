@@ -13,6 +13,7 @@
 //! a little less similar beats an old one, so decay does not empty the neighbourhood of weight.
 
 use super::ann::Ivf;
+use super::rows::Rows;
 use crate::bank::Bank;
 use std::collections::HashMap;
 
@@ -51,19 +52,14 @@ pub struct Pool {
     kmax: usize,
     tau: f64,
     half_life: f64,
-    /// `L` soft truths per entry: the truth itself once labelled.
-    soft: Vec<f64>,
+    /// Per entry, in one block of cache lines ([`Rows`]): its `L` soft truths (the truth itself
+    /// once labelled), whether it is labelled or partly labelled, and a copy of its presence
+    /// flags and reports: what a neighbour's weighted sums read.
+    rows: Rows,
     /// `L` soft truths per entry under the whole-pool Dawid–Skene (`super::ds`), which ignores
     /// context: the known labels' truths, else that model's E-step posterior. Kept beside
     /// `soft` so that evictions renumber both alike.
     gsoft: Vec<f64>,
-    /// Every label's truth is known (a fully labelled entry: EM never visits it).
-    labelled: Vec<bool>,
-    /// Some labels' truth is known, not all (partial feedback): the entry stays with the
-    /// unlabelled ones for EM, which re-estimates only its unknown labels, is never evicted,
-    /// and its known labels weigh as labelled ones do. Which labels are known is its bank
-    /// truth (0/1 known, [`crate::UNKNOWN`] not).
-    partial: Vec<bool>,
     /// The engine's labelled-round count when the entry was observed (its age clock).
     clock: Vec<u64>,
     /// Per entry: up to `kmax` neighbours, best first.
@@ -174,10 +170,8 @@ impl Pool {
             kmax,
             tau,
             half_life,
-            soft: Vec::new(),
+            rows: Rows::new(n, l),
             gsoft: Vec::new(),
-            labelled: Vec::new(),
-            partial: Vec::new(),
             clock: Vec::new(),
             nb: Vec::new(),
             by_seq: HashMap::new(),
@@ -375,6 +369,7 @@ impl Pool {
         }
         let keep: Vec<bool> = dead.iter().map(|d| !d).collect();
         self.bank.retain(&keep);
+        self.rows.retain(&keep);
         if let Some(ivf) = self.ann.as_mut() {
             ivf.retain(&keep);
         }
@@ -385,19 +380,13 @@ impl Pool {
                 continue;
             }
             if w != r {
-                self.soft.copy_within(r * l..(r + 1) * l, w * l);
                 self.gsoft.copy_within(r * l..(r + 1) * l, w * l);
-                self.labelled[w] = self.labelled[r];
-                self.partial[w] = self.partial[r];
                 self.clock[w] = self.clock[r];
                 self.nb.swap(w, r);
             }
             w += 1;
         }
-        self.soft.truncate(w * l);
         self.gsoft.truncate(w * l);
-        self.labelled.truncate(w);
-        self.partial.truncate(w);
         self.clock.truncate(w);
         self.nb.truncate(w);
         for list in &mut self.nb {
@@ -417,7 +406,7 @@ impl Pool {
             None => false,
         });
         self.unlabelled = (0..w as u32)
-            .filter(|&p| !self.labelled[p as usize])
+            .filter(|&p| !self.rows.labelled(p as usize))
             .collect();
         if !self.worst_sim.is_empty() {
             self.worst_sim = (0..w).map(|p| self.worst_of(p)).collect();
@@ -426,7 +415,7 @@ impl Pool {
     }
 
     pub fn len(&self) -> usize {
-        self.labelled.len()
+        self.clock.len()
     }
 
     pub fn position(&self, seq: u64) -> Option<usize> {
@@ -434,36 +423,13 @@ impl Pool {
     }
 
     /// Asks the processor to start loading what [`Adaptive`](super::Adaptive)'s weighted sums
-    /// read of these entries (soft truths, reports), so that the misses of a large pool overlap
-    /// instead of coming one neighbour at a time. A hint only: no effect on any result.
+    /// read of these entries (their rows), so that the misses of a large pool overlap instead
+    /// of coming one neighbour at a time. A hint only: no effect on any result.
     #[inline]
     pub fn prefetch(&self, positions: impl Iterator<Item = usize>) {
-        #[cfg(target_arch = "x86_64")]
         for pos in positions {
-            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-            let t = self.soft[pos * self.l..].as_ptr() as *const i8;
-            let reports = self.bank.reports_of(pos);
-            let r = reports.as_ptr() as *const i8;
-            let flags = [
-                self.bank.present_of(pos).as_ptr() as *const i8,
-                self.labelled[pos..].as_ptr() as *const i8,
-                self.partial[pos..].as_ptr() as *const i8,
-            ];
-            // SAFETY: a prefetch is a hint; every pointer is in bounds of a live slice (or one
-            // past a slice's last byte, which a prefetch never dereferences).
-            unsafe {
-                _mm_prefetch(t, _MM_HINT_T0);
-                _mm_prefetch(t.wrapping_add(64), _MM_HINT_T0);
-                _mm_prefetch(t.wrapping_add(self.l * 8 - 1), _MM_HINT_T0);
-                _mm_prefetch(r, _MM_HINT_T0);
-                _mm_prefetch(r.wrapping_add(reports.len().saturating_sub(1)), _MM_HINT_T0);
-                for f in flags {
-                    _mm_prefetch(f, _MM_HINT_T0);
-                }
-            }
+            self.rows.prefetch(pos);
         }
-        #[cfg(not(target_arch = "x86_64"))]
-        let _ = positions;
     }
 
     /// Asks the processor to start loading entry `pos`'s neighbour list and its own soft truth
@@ -491,8 +457,21 @@ impl Pool {
         let _ = pos;
     }
 
+    #[inline]
     pub fn soft(&self, pos: usize) -> &[f64] {
-        &self.soft[pos * self.l..(pos + 1) * self.l]
+        self.rows.soft(pos)
+    }
+
+    /// The entry's presence flags (0/1), as the bank holds them, from its row.
+    #[inline]
+    pub fn present_row(&self, pos: usize) -> &[u8] {
+        self.rows.present(pos)
+    }
+
+    /// The entry's `n L` reports, as the bank holds them, from its row.
+    #[inline]
+    pub fn reports_row(&self, pos: usize) -> &[u8] {
+        self.rows.reports(pos)
     }
 
     /// The entry's soft truths under the whole-pool Dawid–Skene.
@@ -506,7 +485,7 @@ impl Pool {
         let l = self.l;
         for (k, &tk) in t.iter().enumerate().take(l) {
             self.gsoft[pos * l + k] = if self.known(pos, k) {
-                self.soft[pos * l + k]
+                self.rows.soft(pos)[k]
             } else {
                 tk
             };
@@ -514,19 +493,22 @@ impl Pool {
     }
 
     pub fn is_labelled(&self, pos: usize) -> bool {
-        self.labelled[pos]
+        self.rows.labelled(pos)
     }
 
-    /// Some, not all, of the entry's labels are known.
+    /// Some, not all, of the entry's labels are known (partial feedback): the entry stays with
+    /// the unlabelled ones for EM, which re-estimates only its unknown labels, is never evicted,
+    /// and its known labels weigh as labelled ones do. Which labels are known is its bank truth
+    /// (0/1 known, [`crate::UNKNOWN`] not).
     #[inline]
     pub fn is_partial(&self, pos: usize) -> bool {
-        self.partial[pos]
+        self.rows.partial(pos)
     }
 
     /// Whether label `k` of entry `pos` is known (labelled, or given by a partial feedback).
     #[inline]
     pub fn known(&self, pos: usize, k: usize) -> bool {
-        self.labelled[pos] || self.bank.truth(pos, k) <= 1
+        self.rows.labelled(pos) || self.bank.truth(pos, k) <= 1
     }
 
     /// A (partial) feedback on entry `pos`: each label `y` knows (0 or 1) becomes known with
@@ -536,16 +518,17 @@ impl Pool {
         let l = self.l;
         for (k, &v) in y.iter().enumerate() {
             if v <= 1 {
-                self.soft[pos * l + k] = v as f64;
+                self.rows.soft_mut(pos)[k] = v as f64;
                 self.gsoft[pos * l + k] = v as f64;
             }
         }
         let full: Vec<u8> = (0..l).map(|k| self.bank.truth(pos, k)).collect();
         if full.iter().all(|&v| v <= 1) {
-            self.partial[pos] = false;
+            self.rows.set_partial(pos, false);
             self.set_label(pos, &full);
         } else {
-            self.partial[pos] = !self.labelled[pos];
+            let partial = !self.rows.labelled(pos);
+            self.rows.set_partial(pos, partial);
         }
     }
 
@@ -563,35 +546,30 @@ impl Pool {
     }
 
     pub fn present(&self, pos: usize) -> Vec<bool> {
-        (0..self.n).map(|i| self.bank.present(pos, i)).collect()
+        self.rows.present(pos).iter().map(|&p| p != 0).collect()
     }
 
+    /// The entry's reports as the bank holds them, from its row.
     pub fn reports(&self, pos: usize) -> Vec<u8> {
-        let mut r = Vec::with_capacity(self.n * self.l);
-        for i in 0..self.n {
-            for k in 0..self.l {
-                r.push(self.bank.report(pos, i, k));
-            }
-        }
-        r
+        self.rows.reports(pos).to_vec()
     }
 
     pub fn set_soft(&mut self, pos: usize, t: &[f64]) {
-        self.soft[pos * self.l..(pos + 1) * self.l].copy_from_slice(t);
+        self.rows.soft_mut(pos).copy_from_slice(t);
     }
 
     pub fn set_label(&mut self, pos: usize, y: &[u8]) {
         let l = self.l;
         for (k, &v) in y.iter().enumerate() {
-            self.soft[pos * l + k] = v as f64;
+            self.rows.soft_mut(pos)[k] = v as f64;
             self.gsoft[pos * l + k] = v as f64;
         }
-        if !self.labelled[pos] {
+        if !self.rows.labelled(pos) {
             if let Ok(i) = self.unlabelled.binary_search(&(pos as u32)) {
                 self.unlabelled.remove(i);
             }
         }
-        self.labelled[pos] = true;
+        self.rows.set_labelled(pos, true);
     }
 
     /// The ranking weight of an entry observed at clock `c` with cosine `sim`, seen from clock
@@ -875,10 +853,8 @@ impl Pool {
             vec![crate::UNKNOWN; self.l]
         };
         self.bank.push(seq, context, present, reports, &truth);
-        self.soft.extend_from_slice(soft);
+        self.rows.push(soft, labelled, false, present, reports);
         self.gsoft.extend_from_slice(soft);
-        self.labelled.push(labelled);
-        self.partial.push(false);
         if !labelled {
             self.unlabelled.push(pos as u32);
         }
