@@ -309,11 +309,26 @@ impl Ivf {
     /// `probe` cells nearest to it (ties: the earlier position), in no particular order; and
     /// `x`'s own cell.
     pub fn candidates(&self, x: &[f32], probe: usize, ef: usize) -> (Vec<usize>, u32) {
+        let plan = self.plan(x, probe, ef);
+        let scored = (0..plan.cells.len()).map(|i| self.score_cell(&plan, i));
+        (plan.select(scored), plan.own)
+    }
+
+    /// The first half of [`Ivf::candidates`]: `x`'s own cell, the cells to probe (best
+    /// first) and its 8-bit code. The cells can then be scored in any order, on any thread
+    /// ([`Ivf::score_cell`]), and [`Plan::select`] takes the same candidates from them.
+    pub fn plan(&self, x: &[f32], probe: usize, ef: usize) -> Plan {
         let mut sims = Vec::with_capacity(self.cells());
         scan_f32(&self.centres, x, self.dim, &mut sims);
         let own = argmax(&sims) as u32;
         if self.is_empty() || ef == 0 {
-            return (Vec::new(), own);
+            return Plan {
+                own,
+                cells: Vec::new(),
+                q: Vec::new(),
+                qs: 0.0,
+                ef,
+            };
         }
         let mut order: Vec<usize> = (0..self.cells()).collect();
         let probe = probe.clamp(1, order.len());
@@ -324,26 +339,61 @@ impl Ivf {
         }
         let mut q = Vec::with_capacity(self.dim);
         let qs = quantise(x, &mut q);
+        Plan {
+            own,
+            cells: order,
+            q,
+            qs,
+            ef,
+        }
+    }
+
+    /// The approximate similarities of the plan's `i`-th cell's entries, with their positions.
+    pub fn score_cell(&self, plan: &Plan, i: usize) -> Vec<(f32, usize)> {
         let d = self.dim;
         let kind = dot_kind();
-        let mut scored: Vec<(f32, usize)> = Vec::new();
-        for &c in &order {
-            let cell = &self.lists[c];
-            for ((&p, &s), code) in cell
-                .pos
-                .iter()
-                .zip(&cell.scales)
-                .zip(cell.codes.chunks_exact(d))
-            {
-                scored.push((dot_i8_with(kind, &q, code) as f32 * qs * s, p as usize));
-            }
+        let cell = &self.lists[plan.cells[i]];
+        cell.pos
+            .iter()
+            .zip(&cell.scales)
+            .zip(cell.codes.chunks_exact(d))
+            .map(|((&p, &s), code)| {
+                (
+                    dot_i8_with(kind, &plan.q, code) as f32 * plan.qs * s,
+                    p as usize,
+                )
+            })
+            .collect()
+    }
+}
+
+/// A query's probe of the index ([`Ivf::plan`]).
+#[derive(Debug, Clone)]
+pub struct Plan {
+    /// The query's own cell.
+    pub own: u32,
+    /// The cells to probe.
+    pub cells: Vec<usize>,
+    q: Vec<i8>,
+    qs: f32,
+    ef: usize,
+}
+
+impl Plan {
+    /// The `ef` best of the scored cells, given in the plan's cell order (so the same
+    /// candidates, in the same order, whoever scored which cell).
+    pub fn select(&self, scored: impl Iterator<Item = Vec<(f32, usize)>>) -> Vec<usize> {
+        let ef = self.ef;
+        if self.cells.is_empty() {
+            return Vec::new();
         }
+        let mut scored: Vec<(f32, usize)> = scored.flatten().collect();
         let cmp = |a: &(f32, usize), b: &(f32, usize)| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1));
         if scored.len() > ef {
             scored.select_nth_unstable_by(ef - 1, cmp);
             scored.truncate(ef);
         }
-        (scored.into_iter().map(|(_, p)| p).collect(), own)
+        scored.into_iter().map(|(_, p)| p).collect()
     }
 }
 

@@ -17,6 +17,8 @@
 //! pool (as the paper method's inference is over the bank), the E-step of at most `refresh_max + em_chunk`
 //! entries.
 
+use std::sync::Arc;
+
 pub mod ann;
 pub mod calibrate;
 pub mod config;
@@ -1103,16 +1105,24 @@ impl Adaptive {
         match (next, self.pool.take_ann()) {
             (Some((x, beside)), Some(ivf)) => {
                 let job = self.pool.ahead_job();
-                let x = x.to_vec();
                 // The bank's rows go with the index: the EM chunk reads no context.
                 let rows = self.pool.bank.take_rows();
-                let (ivf, rows, ahead) = beside.run(
-                    move || {
-                        let ahead = job.run(&ivf, rows.as_deref(), &x);
-                        (ivf, rows, ahead)
+                let search = Arc::new(pool::Search::new(job, ivf, rows, x));
+                let theirs = Arc::clone(&search);
+                let ahead = beside.run(
+                    move || theirs.run(),
+                    || {
+                        self.em_chunk(cx);
+                        // Done first: score the cells the helper has not reached.
+                        search.help();
                     },
-                    || self.em_chunk(cx),
                 );
+                // The job, with its handle, ended before `run` returned; were it still held,
+                // copies would do.
+                let (ivf, rows) = match Arc::try_unwrap(search) {
+                    Ok(s) => s.into_parts(),
+                    Err(shared) => shared.copy_parts(),
+                };
                 self.pool.bank.put_rows(rows);
                 self.pool.put_ann(ivf, Some(ahead));
             }

@@ -12,10 +12,12 @@
 //! decay that is the paper method's order exactly (cosine, then older first); with it, a recent round that is
 //! a little less similar beats an old one, so decay does not empty the neighbourhood of weight.
 
-use super::ann::Ivf;
+use super::ann::{Ivf, Plan};
 use super::rows::Rows;
 use crate::bank::Bank;
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Mutex, OnceLock};
 
 /// A neighbour: position, cosine, and the ranking weight it has for the entry (or query) whose
 /// list it is in.
@@ -124,9 +126,23 @@ impl AheadJob {
     /// With `rows` (a compact bank's, from [`Bank::take_rows`]) it also scores the candidates
     /// exactly, as the scan would: the largest part of a scan's own work at scale is reading
     /// those scattered rows, and here it runs beside the EM chunk too.
+    #[cfg(test)]
     pub fn run(self, ivf: &Ivf, rows: Option<&[f32]>, x: &[f64]) -> Ahead {
         let xf: Vec<f32> = x.iter().map(|&v| v as f32).collect();
-        let (mut cand, cell) = ivf.candidates(&xf, self.probe, self.ef);
+        let (cand, cell) = ivf.candidates(&xf, self.probe, self.ef);
+        self.finish(cand, cell, rows, x, &xf)
+    }
+
+    /// The candidates `cand` of `x` (cell `cell`) in ascending order, with their exact scores
+    /// when the rows came along.
+    fn finish(
+        self,
+        mut cand: Vec<usize>,
+        cell: u32,
+        rows: Option<&[f32]>,
+        x: &[f64],
+        xf: &[f32],
+    ) -> Ahead {
         cand.sort_unstable();
         let exact = rows
             .filter(|r| self.dim > 0 && r.len() == self.pool_len * self.dim)
@@ -136,12 +152,99 @@ impl AheadJob {
                 (x.to_vec(), sims)
             });
         Ahead {
-            x: xf,
+            x: xf.to_vec(),
             pool_len: self.pool_len,
             epoch: self.epoch,
             found: (cand, cell),
             exact,
         }
+    }
+}
+
+/// An [`AheadJob`] under way on the helper thread, which the caller's thread can join once its
+/// own half is done ([`Search::help`]): at a million rounds the search of a 200,000-entry pool
+/// is the longer of the two halves. The probed cells are handed out one at a time; each cell is
+/// scored by the same function on whichever thread takes it, and the candidates are selected
+/// from the cells in the plan's order, so the result is [`AheadJob::run`]'s, bit for bit
+/// (tested), whoever scored what.
+pub struct Search {
+    job: AheadJob,
+    ivf: Ivf,
+    rows: Option<Vec<f32>>,
+    x: Vec<f64>,
+    xf: Vec<f32>,
+    plan: OnceLock<Plan>,
+    next: AtomicUsize,
+    done: AtomicUsize,
+    parts: Vec<Mutex<Vec<(f32, usize)>>>,
+}
+
+impl Search {
+    /// The search of `x` on the index and rows taken out of the pool ([`Pool::take_ann`],
+    /// [`Bank::take_rows`]); nothing runs yet.
+    pub fn new(job: AheadJob, ivf: Ivf, rows: Option<Vec<f32>>, x: &[f64]) -> Self {
+        let slots = job.probe.clamp(1, ivf.cells().max(1));
+        Self {
+            job,
+            ivf,
+            rows,
+            x: x.to_vec(),
+            xf: x.iter().map(|&v| v as f32).collect(),
+            plan: OnceLock::new(),
+            next: AtomicUsize::new(0),
+            done: AtomicUsize::new(0),
+            parts: (0..slots).map(|_| Mutex::new(Vec::new())).collect(),
+        }
+    }
+
+    fn claim(&self, plan: &Plan) {
+        loop {
+            let i = self.next.fetch_add(1, Ordering::AcqRel);
+            if i >= plan.cells.len() {
+                return;
+            }
+            let scored = self.ivf.score_cell(plan, i);
+            *self.parts[i].lock().unwrap_or_else(|e| e.into_inner()) = scored;
+            self.done.fetch_add(1, Ordering::AcqRel);
+        }
+    }
+
+    /// The caller's share: scores probed cells while any are left, once the search has
+    /// planned them (else it returns at once).
+    pub fn help(&self) {
+        if let Some(plan) = self.plan.get() {
+            self.claim(plan);
+        }
+    }
+
+    /// The whole search (on the helper, or on the caller when the helper never started it):
+    /// the plan, a share of the cells, the selection once every cell is scored, and the exact
+    /// scores of the candidates.
+    pub fn run(&self) -> Ahead {
+        let job = self.job;
+        let plan = self
+            .plan
+            .get_or_init(|| self.ivf.plan(&self.xf, job.probe, job.ef));
+        debug_assert!(plan.cells.len() <= self.parts.len());
+        self.claim(plan);
+        while self.done.load(Ordering::Acquire) < plan.cells.len() {
+            std::hint::spin_loop();
+        }
+        let scored = self.parts[..plan.cells.len()]
+            .iter()
+            .map(|p| std::mem::take(&mut *p.lock().unwrap_or_else(|e| e.into_inner())));
+        let cand = plan.select(scored);
+        job.finish(cand, plan.own, self.rows.as_deref(), &self.x, &self.xf)
+    }
+
+    /// The index and rows, to be put back into the pool.
+    pub fn into_parts(self) -> (Ivf, Option<Vec<f32>>) {
+        (self.ivf, self.rows)
+    }
+
+    /// Copies of the index and rows, when another handle still holds the search.
+    pub fn copy_parts(&self) -> (Ivf, Option<Vec<f32>>) {
+        (self.ivf.clone(), self.rows.clone())
     }
 }
 
@@ -995,6 +1098,81 @@ mod tests {
         for j in 0..count {
             assert_eq!(scanned.neighbours(j), given.neighbours(j), "entry {j}");
         }
+    }
+
+    /// A search whose cells two threads share ([`Search`]) finds what the helper alone finds
+    /// ([`AheadJob::run`]): the same candidates and the same exact cosines, bit for bit, however
+    /// the cells were split (a thread joins as soon as the plan exists, so the split varies).
+    #[test]
+    fn a_search_shared_by_two_threads_finds_what_one_finds() {
+        let (dim, count) = (48, 5000);
+        let mut state = 29u64;
+        let centres: Vec<Vec<f64>> = (0..30)
+            .map(|_| (0..dim).map(|_| rnd(&mut state)).collect())
+            .collect();
+        let mut pool = Pool::new(1, 1, 20, 4.0, 0.0)
+            .compact(true)
+            .approximate(2000, 64, 16, 100);
+        for s in 0..count as u64 {
+            let x = clustered(&mut state, &centres, 0.5);
+            let scan = pool.scan(&x, s / 10);
+            pool.insert(s, &x, &[true], &[0], &[0.0], false, s / 10, &scan);
+        }
+        let job = pool.ahead_job();
+        let ivf = pool.take_ann().expect("the index is in use");
+        let rows = pool.bank.take_rows();
+        let mut done = Vec::new();
+        for q in 0..40 {
+            let x = clustered(&mut state, &centres, 0.5);
+            let want = job.run(&ivf, rows.as_deref(), &x);
+            let search = Search::new(job, ivf.clone(), rows.clone(), &x);
+            // Before the plan exists, helping does nothing.
+            search.help();
+            assert_eq!(search.next.load(Ordering::Relaxed), 0);
+            let got = std::thread::scope(|sc| {
+                if q % 3 == 1 {
+                    // This thread holds a cell while the other runs the search: the search
+                    // must wait for it.
+                    let plan = search
+                        .plan
+                        .get_or_init(|| search.ivf.plan(&search.xf, job.probe, job.ef));
+                    let i = search.next.fetch_add(1, Ordering::AcqRel);
+                    let helper = sc.spawn(|| search.run());
+                    std::thread::sleep(std::time::Duration::from_millis(20));
+                    assert!(!helper.is_finished(), "the search left a held cell behind");
+                    *search.parts[i].lock().unwrap() = search.ivf.score_cell(plan, i);
+                    search.done.fetch_add(1, Ordering::AcqRel);
+                    return helper.join().unwrap();
+                }
+                let helper = sc.spawn(|| search.run());
+                if q % 3 == 0 {
+                    while search.plan.get().is_none() {
+                        std::hint::spin_loop();
+                    }
+                    search.help();
+                }
+                helper.join().unwrap()
+            });
+            done.push(search.done.load(Ordering::Relaxed));
+            assert_eq!(got.found, want.found, "query {q}");
+            let bits = |a: &Ahead| {
+                let (x, s) = a.exact.as_ref().expect("scored exactly");
+                (
+                    x.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                    s.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                )
+            };
+            assert_eq!(bits(&got), bits(&want), "query {q}");
+            assert_eq!(got.x, want.x);
+            assert_eq!((got.pool_len, got.epoch), (want.pool_len, want.epoch));
+            let (back, back_rows) = search.into_parts();
+            assert_eq!(back.len(), ivf.len());
+            assert_eq!(back_rows.map(|r| r.len()), rows.as_ref().map(|r| r.len()));
+        }
+        assert!(
+            done.iter().all(|&d| d == 16),
+            "every probed cell scored once"
+        );
     }
 
     /// Contexts around a few centres, as scenes are.
