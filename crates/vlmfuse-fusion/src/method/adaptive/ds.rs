@@ -67,13 +67,14 @@ impl GlobalDs {
     pub fn add(&mut self, pool: &Pool, pos: usize, sign: f64) {
         let (n, l) = (self.cells.len() / self.pos.len().max(1), self.pos.len());
         let t = pool.gsoft(pos);
+        let (present, reps) = (pool.present_row(pos), pool.reports_row(pos));
         for i in 0..n {
-            if pool.present_row(pos)[i] == 0 {
+            if present[i] == 0 {
                 continue;
             }
             for (k, &tk) in t.iter().enumerate() {
                 let c = &mut self.cells[i * l + k];
-                if pool.reports_row(pos)[i * l + k] != 0 {
+                if reps[i * l + k] != 0 {
                     c[0] += sign * tk;
                     c[2] += sign * (1.0 - tk);
                 } else {
@@ -95,13 +96,14 @@ impl GlobalDs {
     pub fn replace(&mut self, pool: &Pool, pos: usize, old: &[f64]) {
         let (n, l) = (self.cells.len() / self.pos.len().max(1), self.pos.len());
         let t = pool.gsoft(pos);
+        let (present, reps) = (pool.present_row(pos), pool.reports_row(pos));
         for i in 0..n {
-            if pool.present_row(pos)[i] == 0 {
+            if present[i] == 0 {
                 continue;
             }
             for (k, (&tk, &ok)) in t.iter().zip(old).enumerate() {
                 let c = &mut self.cells[i * l + k];
-                if pool.reports_row(pos)[i * l + k] != 0 {
+                if reps[i * l + k] != 0 {
                     c[0] += -ok;
                     c[0] += tk;
                     c[2] += -(1.0 - ok);
@@ -267,11 +269,12 @@ impl DsParams {
     pub fn posterior_into(&self, pool: &Pool, pos: usize, eps: f64, out: &mut [f64]) {
         let l = self.l;
         let n = self.yes.len() / l.max(1);
+        let (present, reps) = (pool.present_row(pos), pool.reports_row(pos));
         for (k, o) in out.iter_mut().enumerate().take(l) {
             let mut z = self.prior_logit[k];
             for i in 0..n {
-                if pool.present_row(pos)[i] != 0 {
-                    z += if pool.reports_row(pos)[i * l + k] != 0 {
+                if present[i] != 0 {
+                    z += if reps[i * l + k] != 0 {
                         self.yes[i * l + k]
                     } else {
                         self.no[i * l + k]

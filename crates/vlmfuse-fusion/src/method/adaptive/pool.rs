@@ -59,8 +59,8 @@ pub struct Pool {
     /// flags and reports: what a neighbour's weighted sums read.
     rows: Rows,
     /// `L` soft truths per entry under the whole-pool Dawid–Skene (`super::ds`), which ignores
-    /// context: the known labels' truths, else that model's E-step posterior. Kept beside
-    /// `soft` so that evictions renumber both alike.
+    /// context: the known labels' truths, else that model's E-step posterior. Renumbered with
+    /// the rows on eviction.
     gsoft: Vec<f64>,
     /// The engine's labelled-round count when the entry was observed (its age clock).
     clock: Vec<u64>,
@@ -161,6 +161,9 @@ impl AheadJob {
     }
 }
 
+/// A probed cell's approximate similarities, with their positions, once scored.
+type Slot = Mutex<Vec<(f32, usize)>>;
+
 /// An [`AheadJob`] under way on the helper thread, which the caller's thread can join once its
 /// own half is done ([`Search::help`]): at a million rounds the search of a 200,000-entry pool
 /// is the longer of the two halves. The probed cells are handed out one at a time; each cell is
@@ -173,17 +176,16 @@ pub struct Search {
     rows: Option<Vec<f32>>,
     x: Vec<f64>,
     xf: Vec<f32>,
-    plan: OnceLock<Plan>,
+    /// The plan, and a slot per probed cell for its scores.
+    plan: OnceLock<(Plan, Vec<Slot>)>,
     next: AtomicUsize,
     done: AtomicUsize,
-    parts: Vec<Mutex<Vec<(f32, usize)>>>,
 }
 
 impl Search {
     /// The search of `x` on the index and rows taken out of the pool ([`Pool::take_ann`],
     /// [`Bank::take_rows`]); nothing runs yet.
     pub fn new(job: AheadJob, ivf: Ivf, rows: Option<Vec<f32>>, x: &[f64]) -> Self {
-        let slots = job.probe.clamp(1, ivf.cells().max(1));
         Self {
             job,
             ivf,
@@ -193,18 +195,26 @@ impl Search {
             plan: OnceLock::new(),
             next: AtomicUsize::new(0),
             done: AtomicUsize::new(0),
-            parts: (0..slots).map(|_| Mutex::new(Vec::new())).collect(),
         }
     }
 
-    fn claim(&self, plan: &Plan) {
+    /// The plan (made on first call) and its cells' slots.
+    fn planned(&self) -> &(Plan, Vec<Slot>) {
+        self.plan.get_or_init(|| {
+            let plan = self.ivf.plan(&self.xf, self.job.probe, self.job.ef);
+            let parts = plan.cells.iter().map(|_| Mutex::default()).collect();
+            (plan, parts)
+        })
+    }
+
+    fn claim(&self, plan: &Plan, parts: &[Slot]) {
         loop {
             let i = self.next.fetch_add(1, Ordering::AcqRel);
             if i >= plan.cells.len() {
                 return;
             }
             let scored = self.ivf.score_cell(plan, i);
-            *self.parts[i].lock().unwrap_or_else(|e| e.into_inner()) = scored;
+            *parts[i].lock().unwrap_or_else(|e| e.into_inner()) = scored;
             self.done.fetch_add(1, Ordering::AcqRel);
         }
     }
@@ -212,8 +222,8 @@ impl Search {
     /// The caller's share: scores probed cells while any are left, once the search has
     /// planned them (else it returns at once).
     pub fn help(&self) {
-        if let Some(plan) = self.plan.get() {
-            self.claim(plan);
+        if let Some((plan, parts)) = self.plan.get() {
+            self.claim(plan, parts);
         }
     }
 
@@ -221,20 +231,17 @@ impl Search {
     /// the plan, a share of the cells, the selection once every cell is scored, and the exact
     /// scores of the candidates.
     pub fn run(&self) -> Ahead {
-        let job = self.job;
-        let plan = self
-            .plan
-            .get_or_init(|| self.ivf.plan(&self.xf, job.probe, job.ef));
-        debug_assert!(plan.cells.len() <= self.parts.len());
-        self.claim(plan);
+        let (plan, parts) = self.planned();
+        self.claim(plan, parts);
         while self.done.load(Ordering::Acquire) < plan.cells.len() {
             std::hint::spin_loop();
         }
-        let scored = self.parts[..plan.cells.len()]
+        let scored = parts
             .iter()
             .map(|p| std::mem::take(&mut *p.lock().unwrap_or_else(|e| e.into_inner())));
         let cand = plan.select(scored);
-        job.finish(cand, plan.own, self.rows.as_deref(), &self.x, &self.xf)
+        self.job
+            .finish(cand, plan.own, self.rows.as_deref(), &self.x, &self.xf)
     }
 
     /// The index and rows, to be put back into the pool.
@@ -1105,19 +1112,8 @@ mod tests {
     /// the cells were split (a thread joins as soon as the plan exists, so the split varies).
     #[test]
     fn a_search_shared_by_two_threads_finds_what_one_finds() {
-        let (dim, count) = (48, 5000);
         let mut state = 29u64;
-        let centres: Vec<Vec<f64>> = (0..30)
-            .map(|_| (0..dim).map(|_| rnd(&mut state)).collect())
-            .collect();
-        let mut pool = Pool::new(1, 1, 20, 4.0, 0.0)
-            .compact(true)
-            .approximate(2000, 64, 16, 100);
-        for s in 0..count as u64 {
-            let x = clustered(&mut state, &centres, 0.5);
-            let scan = pool.scan(&x, s / 10);
-            pool.insert(s, &x, &[true], &[0], &[0.0], false, s / 10, &scan);
-        }
+        let (mut pool, centres) = scene_pool(&mut state, 48, 30, 5000, 20, (2000, 64, 16, 100));
         let job = pool.ahead_job();
         let ivf = pool.take_ann().expect("the index is in use");
         let rows = pool.bank.take_rows();
@@ -1133,14 +1129,12 @@ mod tests {
                 if q % 3 == 1 {
                     // This thread holds a cell while the other runs the search: the search
                     // must wait for it.
-                    let plan = search
-                        .plan
-                        .get_or_init(|| search.ivf.plan(&search.xf, job.probe, job.ef));
+                    let (plan, parts) = search.planned();
                     let i = search.next.fetch_add(1, Ordering::AcqRel);
                     let helper = sc.spawn(|| search.run());
                     std::thread::sleep(std::time::Duration::from_millis(20));
                     assert!(!helper.is_finished(), "the search left a held cell behind");
-                    *search.parts[i].lock().unwrap() = search.ivf.score_cell(plan, i);
+                    *parts[i].lock().unwrap() = search.ivf.score_cell(plan, i);
                     search.done.fetch_add(1, Ordering::AcqRel);
                     return helper.join().unwrap();
                 }
@@ -1175,6 +1169,31 @@ mod tests {
         );
     }
 
+    /// A compact pool of `count` scene-like contexts of `dim` around `scenes` centres (entry
+    /// `s` observed at clock `s`), keeping `kmax` neighbours, with the index `(min, cells,
+    /// probe, ef)`; and the centres, for queries like them.
+    fn scene_pool(
+        state: &mut u64,
+        dim: usize,
+        scenes: usize,
+        count: usize,
+        kmax: usize,
+        (min, cells, probe, ef): (usize, usize, usize, usize),
+    ) -> (Pool, Vec<Vec<f64>>) {
+        let centres: Vec<Vec<f64>> = (0..scenes)
+            .map(|_| (0..dim).map(|_| rnd(state)).collect())
+            .collect();
+        let mut pool = Pool::new(1, 1, kmax, 4.0, 0.0)
+            .compact(true)
+            .approximate(min, cells, probe, ef);
+        for s in 0..count as u64 {
+            let x = clustered(state, &centres, 0.5);
+            let scan = pool.scan(&x, s);
+            pool.insert(s, &x, &[true], &[0], &[0.0], false, s, &scan);
+        }
+        (pool, centres)
+    }
+
     /// Contexts around a few centres, as scenes are.
     fn clustered(state: &mut u64, centres: &[Vec<f64>], spread: f64) -> Vec<f64> {
         let c = &centres[((rnd(state) + 0.5) * centres.len() as f64) as usize % centres.len()];
@@ -1190,19 +1209,8 @@ mod tests {
     /// precision (the same candidates) the cosines are computed afresh, not taken.
     #[test]
     fn cosines_scored_ahead_serve_only_their_own_context() {
-        let (dim, count) = (24, 900);
         let mut state = 5u64;
-        let centres: Vec<Vec<f64>> = (0..12)
-            .map(|_| (0..dim).map(|_| rnd(&mut state)).collect())
-            .collect();
-        let mut pool = Pool::new(1, 1, 10, 4.0, 0.0)
-            .compact(true)
-            .approximate(300, 16, 4, 40);
-        for s in 0..count as u64 {
-            let x = clustered(&mut state, &centres, 0.5);
-            let scan = pool.scan(&x, s);
-            pool.insert(s, &x, &[true], &[0], &[0.0], false, s, &scan);
-        }
+        let (pool, centres) = scene_pool(&mut state, 24, 12, 900, 10, (300, 16, 4, 40));
         assert!(pool.ann_active());
         let x = clustered(&mut state, &centres, 0.5);
         // The same context moved by 2^-35 of one coordinate: its f32 copy, and so its
