@@ -37,19 +37,28 @@ pub struct LabelledRow {
     pub q: Vec<f64>,
 }
 
-const ROW_COLUMNS: &str = "r.seq, r.round_id, r.created_ms, r.context, r.present, r.reports, \
-     d.inference, d.request, EXISTS (SELECT 1 FROM feedback f WHERE f.seq = r.seq)";
+/// A [`RoundRow`]'s columns, then the statement's own `FROM` and `WHERE` (a macro so that each
+/// statement stays one static string, which the PostgreSQL side prepares once).
+macro_rules! round_rows {
+    ($rest:literal) => {
+        concat!(
+            "SELECT r.seq, r.round_id, r.created_ms, r.context, r.present, r.reports, \
+             d.inference, d.request, EXISTS (SELECT 1 FROM feedback f WHERE f.seq = r.seq) \
+             FROM rounds r JOIN round_detail d ON d.seq = r.seq ",
+            $rest
+        )
+    };
+}
 
-fn round_row(row: &rusqlite::Row<'_>) -> Result<RoundRow, StoreError> {
-    let seq = row.get::<_, i64>(0)? as u64;
+fn round_row(row: &Row) -> Result<RoundRow, StoreError> {
     Ok(RoundRow {
-        seq,
-        round_id: row.get(1)?,
-        created_ms: row.get(2)?,
+        seq: row.u64(0)?,
+        round_id: row.string(1)?,
+        created_ms: row.i64(2)?,
         round: round_from(row, 3)?,
-        inference: serde_json::from_str(row.get_ref(6)?.as_str()?)?,
-        request: serde_json::from_str(row.get_ref(7)?.as_str()?)?,
-        labelled: row.get(8)?,
+        inference: serde_json::from_str(row.str(6)?)?,
+        request: serde_json::from_str(row.str(7)?)?,
+        labelled: row.bool(8)?,
     })
 }
 
@@ -61,52 +70,45 @@ impl Store {
         limit: usize,
     ) -> Result<Vec<RoundRow>, StoreError> {
         let before = before.map_or(i64::MAX, |b| b.min(i64::MAX as u64) as i64);
-        let mut st = self.conn.prepare_cached(&format!(
-            "SELECT {ROW_COLUMNS} FROM rounds r JOIN round_detail d ON d.seq = r.seq
-             WHERE r.seq < ?1 ORDER BY r.seq DESC LIMIT ?2"
-        ))?;
-        let mut rows = st.query(params![before, limit as i64])?;
-        let mut out = Vec::new();
-        while let Some(row) = rows.next()? {
-            out.push(round_row(row)?);
-        }
-        Ok(out)
+        self.db
+            .query(
+                round_rows!("WHERE r.seq < ?1 ORDER BY r.seq DESC LIMIT ?2"),
+                &[P::I(before), P::I(limit as i64)],
+            )?
+            .iter()
+            .map(round_row)
+            .collect()
     }
 
     /// One round as the page shows it.
     pub fn round_row(&self, seq: u64) -> Result<Option<RoundRow>, StoreError> {
-        let mut st = self.conn.prepare_cached(&format!(
-            "SELECT {ROW_COLUMNS} FROM rounds r JOIN round_detail d ON d.seq = r.seq
-             WHERE r.seq = ?1"
-        ))?;
-        let mut rows = st.query([seq as i64])?;
-        match rows.next()? {
-            Some(row) => Ok(Some(round_row(row)?)),
-            None => Ok(None),
-        }
+        self.db
+            .query_opt(round_rows!("WHERE r.seq = ?1"), &[P::I(seq as i64)])?
+            .map(|r| round_row(&r))
+            .transpose()
     }
 
     /// The thumbnails kept with a round, without their bytes: (index, time).
     pub fn thumbnail_index(&self, seq: u64) -> Result<Vec<(u32, f64)>, StoreError> {
-        let mut st = self
-            .conn
-            .prepare_cached("SELECT idx, t_s FROM thumbnails WHERE seq = ?1 ORDER BY idx")?;
-        let rows = st.query_map([seq as i64], |r| {
-            Ok((r.get::<_, i64>(0)? as u32, r.get(1)?))
-        })?;
-        Ok(rows.collect::<Result<_, _>>()?)
+        self.db
+            .query(
+                "SELECT idx, t_s FROM thumbnails WHERE seq = ?1 ORDER BY idx",
+                &[P::I(seq as i64)],
+            )?
+            .iter()
+            .map(|r| Ok((r.i64(0)? as u32, r.f64(1)?)))
+            .collect()
     }
 
     /// One thumbnail's JPEG.
     pub fn thumbnail(&self, seq: u64, index: u32) -> Result<Option<Vec<u8>>, StoreError> {
-        Ok(self
-            .conn
-            .query_row(
+        self.db
+            .query_opt(
                 "SELECT jpeg FROM thumbnails WHERE seq = ?1 AND idx = ?2",
-                params![seq as i64, index as i64],
-                |r| r.get(0),
-            )
-            .optional()?)
+                &[P::I(seq as i64), P::I(index as i64)],
+            )?
+            .map(|r| r.blob(0).map(<[u8]>::to_vec))
+            .transpose()
     }
 
     /// The reputations after every `stride`-th feedback event (labelled order 0, stride, ...)
@@ -117,19 +119,17 @@ impl Store {
         stride: u64,
     ) -> Result<Vec<(u64, String, Vec<f64>)>, StoreError> {
         let stride = stride.max(1) as i64;
-        let mut st = self.conn.prepare_cached(
+        let rows = self.db.query(
             "SELECT f.labelled_order, f.seq, f.outcome FROM feedback f
              WHERE f.labelled_order % ?1 = 0
                 OR f.labelled_order = (SELECT MAX(labelled_order) FROM feedback)
              ORDER BY f.labelled_order",
+            &[P::I(stride)],
         )?;
-        let mut rows = st.query([stride])?;
-        let mut out = Vec::new();
-        while let Some(row) = rows.next()? {
-            let order = row.get::<_, i64>(0)? as u64;
-            let seq = row.get::<_, i64>(1)? as u64;
-            let outcome: FeedbackOutcome = serde_json::from_str(row.get_ref(2)?.as_str()?)?;
-            out.push((order + 1, round_id(seq), outcome.w_after));
+        let mut out = Vec::with_capacity(rows.len());
+        for row in rows {
+            let outcome: FeedbackOutcome = serde_json::from_str(row.str(2)?)?;
+            out.push((row.u64(0)? + 1, round_id(row.u64(1)?), outcome.w_after));
         }
         Ok(out)
     }
@@ -137,25 +137,25 @@ impl Store {
     /// The latest `limit` feedback events, oldest first, each with its round (without its
     /// context, which the page does not need).
     pub fn recent_labelled(&self, limit: usize) -> Result<Vec<LabelledRow>, StoreError> {
-        let mut st = self.conn.prepare_cached(
+        let rows = self.db.query(
             "SELECT f.seq, f.labelled_order, f.truth, f.outcome, f.rounds_before, f.source,
                     r.round_id, r.present, r.reports, r.q
              FROM feedback f JOIN rounds r ON r.seq = f.seq
              ORDER BY f.labelled_order DESC LIMIT ?1",
+            &[P::I(limit as i64)],
         )?;
-        let mut rows = st.query([limit as i64])?;
-        let mut out = Vec::new();
-        while let Some(row) = rows.next()? {
-            let seq = row.get::<_, i64>(0)? as u64;
+        let mut out = Vec::with_capacity(rows.len());
+        for row in rows {
+            let seq = row.u64(0)?;
             out.push(LabelledRow {
-                feedback: feedback_from(row, seq, 1)?,
-                round_id: row.get(6)?,
+                feedback: feedback_from(&row, seq, 1)?,
+                round_id: row.string(6)?,
                 round: Round {
                     context: Vec::new(),
-                    present: row.get_ref(7)?.as_blob()?.iter().map(|&b| b != 0).collect(),
-                    reports: row.get_ref(8)?.as_blob()?.to_vec(),
+                    present: row.blob(7)?.iter().map(|&b| b != 0).collect(),
+                    reports: row.blob(8)?.to_vec(),
                 },
-                q: blob_to_f64s(row.get_ref(9)?.as_blob()?)?,
+                q: blob_to_f64s(row.blob(9)?)?,
             });
         }
         out.reverse();
@@ -165,23 +165,21 @@ impl Store {
 
 /// The thumbnails of the rounds from `first_seq`, inside `tx`.
 pub(crate) fn write_thumbnails(
-    tx: &rusqlite::Transaction<'_>,
+    tx: &Db,
     first_seq: u64,
     rounds: &[NewRound],
 ) -> Result<(), StoreError> {
-    if rounds.iter().all(|r| r.thumbnails.is_empty()) {
-        return Ok(());
-    }
-    let mut ins =
-        tx.prepare_cached("INSERT INTO thumbnails (seq, idx, t_s, jpeg) VALUES (?1, ?2, ?3, ?4)")?;
     for (i, r) in rounds.iter().enumerate() {
         for t in &r.thumbnails {
-            ins.execute(params![
-                (first_seq + i as u64) as i64,
-                t.index as i64,
-                t.t_s,
-                &t.jpeg
-            ])?;
+            tx.exec(
+                "INSERT INTO thumbnails (seq, idx, t_s, jpeg) VALUES (?1, ?2, ?3, ?4)",
+                &[
+                    P::I((first_seq + i as u64) as i64),
+                    P::I(t.index as i64),
+                    P::F(t.t_s),
+                    P::B(&t.jpeg),
+                ],
+            )?;
         }
     }
     Ok(())

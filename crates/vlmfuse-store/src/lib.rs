@@ -12,7 +12,8 @@
 //! [`snapshot`]s of the engine now and then: a start loads the newest usable one and replays
 //! only the events after it, which gives the same engine, bit for bit.
 
-use rusqlite::{params, Connection, OpenFlags, OptionalExtension, TransactionBehavior};
+use db::{Db, Row, P};
+use rusqlite::{Connection, OpenFlags};
 use serde::{Deserialize, Serialize};
 use std::fs::File;
 use std::io::{Read, Write};
@@ -38,6 +39,18 @@ pub const LOCK_FILE: &str = "LOCK";
 pub enum StoreError {
     #[error("database error: {0}")]
     Sqlite(#[from] rusqlite::Error),
+    /// PostgreSQL refused or failed a statement, or the connection broke: the server's message.
+    #[error("PostgreSQL: {0}")]
+    Postgres(String),
+    /// The PostgreSQL server could not be reached or refused the session.
+    #[error("cannot connect to PostgreSQL at {url}: {why}")]
+    Connect { url: String, why: String },
+    /// Another vlmfuse holds the database's writer lease (its session-level advisory lock) and
+    /// kept it for as long as this one waited.
+    #[error(
+        "the PostgreSQL database {url} is written by another vlmfuse ({holder}); this one waits          for the lease only as long as [store] lease_wait_s says"
+    )]
+    Leased { url: String, holder: String },
     /// SQLite refused to open or set up the database file (read-only, not a database, full):
     /// the path says which file, which a bare SQLite message does not.
     #[error("cannot open the database {path}: {source}")]
@@ -284,35 +297,26 @@ fn bools_to_blob(v: &[bool]) -> Vec<u8> {
 }
 
 /// A round from the `context`, `present` and `reports` columns of a row, from column `at`.
-fn round_from(row: &rusqlite::Row<'_>, at: usize) -> Result<Round, StoreError> {
+fn round_from(row: &Row, at: usize) -> Result<Round, StoreError> {
     Ok(Round {
-        context: blob_to_f64s(row.get_ref(at)?.as_blob()?)?,
-        present: row
-            .get_ref(at + 1)?
-            .as_blob()?
-            .iter()
-            .map(|&b| b != 0)
-            .collect(),
-        reports: row.get_ref(at + 2)?.as_blob()?.to_vec(),
+        context: blob_to_f64s(row.blob(at)?)?,
+        present: row.blob(at + 1)?.iter().map(|&b| b != 0).collect(),
+        reports: row.blob(at + 2)?.to_vec(),
     })
 }
 
 /// A feedback row of round `seq` from the columns `labelled_order, truth, outcome,
 /// rounds_before, source`, from column `at`. A row written before `rounds_before` was kept
 /// falls right after its round.
-fn feedback_from(
-    row: &rusqlite::Row<'_>,
-    seq: u64,
-    at: usize,
-) -> Result<StoredFeedback, StoreError> {
-    let before: Option<i64> = row.get(at + 3)?;
+fn feedback_from(row: &Row, seq: u64, at: usize) -> Result<StoredFeedback, StoreError> {
+    let before = row.opt_i64(at + 3)?;
     Ok(StoredFeedback {
         seq,
-        labelled_order: row.get::<_, i64>(at)? as u64,
+        labelled_order: row.u64(at)?,
         rounds_before: before.map_or(seq + 1, |b| b as u64),
-        truth: row.get(at + 1)?,
-        outcome: serde_json::from_str(row.get_ref(at + 2)?.as_str()?)?,
-        source: row.get(at + 4)?,
+        truth: row.blob(at + 1)?.to_vec(),
+        outcome: serde_json::from_str(row.str(at + 2)?)?,
+        source: row.string(at + 4)?,
     })
 }
 
@@ -327,10 +331,74 @@ struct Replayed {
     outcomes: Vec<(u64, FeedbackOutcome)>,
 }
 
+/// Rows of a big table read a page at a time in key order: `sql` takes the first key as `?1`
+/// and the page size as `?2`, orders by the key, and has it in column `key_at`. Bounded memory
+/// at any table size, and no cursor held open across the caller's other queries.
+struct Pager<'s> {
+    db: &'s Db,
+    sql: &'static str,
+    key_at: usize,
+    next_key: u64,
+    done: bool,
+    page: std::vec::IntoIter<Row>,
+}
+
+/// Rows per page of a replay: a few megabytes of contexts at most.
+const PAGE_ROWS: i64 = 512;
+
+impl<'s> Pager<'s> {
+    fn new(db: &'s Db, sql: &'static str, key_at: usize, from: u64) -> Self {
+        Pager {
+            db,
+            sql,
+            key_at,
+            next_key: from,
+            done: false,
+            page: Vec::new().into_iter(),
+        }
+    }
+
+    fn next(&mut self) -> Result<Option<Row>, StoreError> {
+        loop {
+            if let Some(r) = self.page.next() {
+                return Ok(Some(r));
+            }
+            if self.done {
+                return Ok(None);
+            }
+            let rows = self
+                .db
+                .query(self.sql, &[P::I(self.next_key as i64), P::I(PAGE_ROWS)])?;
+            self.done = (rows.len() as i64) < PAGE_ROWS;
+            if let Some(last) = rows.last() {
+                self.next_key = last.u64(self.key_at)? + 1;
+            }
+            self.page = rows.into_iter();
+        }
+    }
+}
+
+/// A replay's rounds from `?1`, a page of `?2`: what the engine learns from each (its
+/// context, reporters and reports), the inference it was served, and whether feedback followed.
+const REPLAY_ROUNDS: &str = "SELECT r.seq, r.context, r.present, r.reports, d.inference,
+        EXISTS (SELECT 1 FROM feedback f WHERE f.seq = r.seq)
+ FROM rounds r JOIN round_detail d ON d.seq = r.seq
+ WHERE r.seq >= ?1 ORDER BY r.seq LIMIT ?2";
+
+/// A replay's feedback from labelling order `?1`, a page of `?2`, with its round, the
+/// posteriors served, the stored outcome, its place among the rounds, and whether a later
+/// feedback on the same round follows.
+const REPLAY_FEEDBACK: &str = "SELECT r.seq, r.context, r.present, r.reports, r.q, f.truth,
+        f.outcome, f.rounds_before, f.labelled_order,
+        EXISTS (SELECT 1 FROM feedback g
+                WHERE g.seq = f.seq AND g.labelled_order > f.labelled_order)
+ FROM feedback f JOIN rounds r ON r.seq = f.seq
+ WHERE f.labelled_order >= ?1 ORDER BY f.labelled_order LIMIT ?2";
+
 /// The `rounds` rows, fed to a replay up to a point in event order.
 struct RoundFeed<'s> {
     /// `None` when the replay needs no rounds (a method that learns only from feedback).
-    rows: Option<rusqlite::Rows<'s>>,
+    rows: Option<Pager<'s>>,
     /// Rounds before this `seq` have been fed.
     fed: u64,
     /// Infer each round again instead of reading its stored inference.
@@ -353,19 +421,19 @@ impl RoundFeed<'_> {
                 self.fed = upto;
                 break;
             };
-            let seq = row.get::<_, i64>(0)? as u64;
+            let seq = row.u64(0)?;
             let served = if self.fresh {
                 None
             } else {
-                Some(serde_json::from_slice(row.get_ref(4)?.as_bytes()?)?)
+                Some(serde_json::from_str(row.str(4)?)?)
             };
             let inf = replay.round(RoundEvent {
                 seq,
-                round: round_from(row, 1)?,
+                round: round_from(&row, 1)?,
                 served,
                 sims: None,
                 observe: true,
-                credit_later: self.fresh && row.get::<_, bool>(5)?,
+                credit_later: self.fresh && row.bool(5)?,
             })?;
             if self.fresh {
                 out.inferences.push((seq, inf));
@@ -474,6 +542,40 @@ fn checkpoint(conn: &Connection) -> Result<u64, StoreError> {
     Ok(log.max(0) as u64)
 }
 
+/// After an open that found a non-empty write-ahead log of `wal_bytes` and replayed
+/// `frames_recovered` of its frames: the counts, when they suggest the log was damaged
+/// (SQLite recovered none of its frames, or fewer than the file holds and the database
+/// holds no round). SQLite silently cuts a log at its first bad checksum, so this is the only
+/// trace such a loss leaves.
+fn judge_wal(
+    conn: &Connection,
+    wal_bytes: u64,
+    frames_recovered: u64,
+) -> Result<Option<WalReport>, StoreError> {
+    let count = |sql: &str| -> Result<u64, StoreError> {
+        Ok(conn.query_row(sql, [], |r| r.get::<_, i64>(0))? as u64)
+    };
+    let rounds = count("SELECT COUNT(*) FROM rounds")?;
+    let feedback = count("SELECT COUNT(*) FROM feedback")?;
+    let page = count("PRAGMA page_size")?;
+    // A WAL is a 32-byte header and frames of a 24-byte header plus one page.
+    let frames_in_file = wal_bytes.saturating_sub(32) / (page.max(512) + 24);
+    // No round is suspicious only when frames were lost too: a server killed before its
+    // first round leaves a log of nothing but the schema, all of it recovered.
+    let damaged = frames_recovered == 0 || (rounds == 0 && frames_recovered < frames_in_file);
+    Ok(damaged.then_some(WalReport {
+        wal_bytes,
+        frames_in_file,
+        frames_recovered,
+        rounds,
+        feedback,
+    }))
+}
+
+/// Sets the `method` meta key (both engines read `ON CONFLICT ... excluded` alike).
+const SET_METHOD: &str = "INSERT INTO meta (key, value) VALUES ('method', ?1)
+     ON CONFLICT(key) DO UPDATE SET value = excluded.value";
+
 fn wal_path(db: &Path) -> PathBuf {
     let mut p = db.as_os_str().to_owned();
     p.push("-wal");
@@ -481,15 +583,36 @@ fn wal_path(db: &Path) -> PathBuf {
 }
 
 /// The database. One `Store` is the service's single writer, and holds the data directory's
-/// lock ([`LOCK_FILE`]) for as long as it lives; [`Store::open_read_only`] opens another for
-/// reads beside it.
+/// lock ([`LOCK_FILE`]) for as long as it lives (on PostgreSQL also the database's writer
+/// lease, [`pg`]); [`Store::open_read_only`] opens another for reads beside it.
 pub struct Store {
-    conn: Connection,
+    db: Db,
+    /// SQLite: the database file; PostgreSQL: its URL without the password (for messages).
     path: PathBuf,
+    /// The data directory: the snapshots' parent (on PostgreSQL each replica keeps its own).
+    dir: PathBuf,
     /// What [`Store::open`] found of a damaged write-ahead log (logged as a warning).
     damaged_wal: Option<WalReport>,
-    /// Dropped after `conn` (fields drop in order), so the lock outlives the last write.
+    /// Dropped after `db` (fields drop in order), so the lock outlives the last write.
     _lock: Option<DirLock>,
+}
+
+/// Where the state lives: the embedded SQLite file under the data directory, or a PostgreSQL
+/// database that replicas share (the data directory then keeps only this replica's snapshots).
+#[derive(Debug, Clone, PartialEq)]
+pub enum Location {
+    Sqlite { dir: PathBuf },
+    Postgres(pg::PgOptions),
+}
+
+impl Location {
+    /// The data directory (the SQLite file's, or a PostgreSQL replica's snapshots').
+    pub fn dir(&self) -> &Path {
+        match self {
+            Location::Sqlite { dir } => dir,
+            Location::Postgres(o) => &o.data_dir,
+        }
+    }
 }
 
 impl Store {
@@ -497,6 +620,40 @@ impl Store {
     /// [`StoreError::Locked`] at once when another store holds it, in this process or another.
     pub fn open(dir: &Path) -> Result<Self, StoreError> {
         Self::open_waiting(dir, Duration::ZERO)
+    }
+
+    /// Opens the store at `at` as its writer: [`Store::open_waiting`] for SQLite, and for
+    /// PostgreSQL the connection that holds the writer lease ([`pg::open_writer`]), waiting for
+    /// it as the options say.
+    pub fn open_at(at: &Location, wait: Duration) -> Result<Self, StoreError> {
+        match at {
+            Location::Sqlite { dir } => Self::open_waiting(dir, wait),
+            Location::Postgres(o) => {
+                let lock = DirLock::acquire(&o.data_dir, wait)?;
+                let db = pg::open_writer(o)?;
+                Ok(Self {
+                    db,
+                    path: PathBuf::from(o.redacted()),
+                    dir: o.data_dir.clone(),
+                    damaged_wal: None,
+                    _lock: Some(lock),
+                })
+            }
+        }
+    }
+
+    /// A reader of the store at `at`, beside its writer ([`Store::open_read_only`]).
+    pub fn open_read_only_at(at: &Location) -> Result<Self, StoreError> {
+        match at {
+            Location::Sqlite { dir } => Self::open_read_only(dir),
+            Location::Postgres(o) => Ok(Self {
+                db: pg::open_reader(o)?,
+                path: PathBuf::from(o.redacted()),
+                dir: o.data_dir.clone(),
+                damaged_wal: None,
+                _lock: None,
+            }),
+        }
     }
 
     /// [`Store::open`] that waits up to `wait` for another holder to let go of the lock before
@@ -533,18 +690,19 @@ impl Store {
             None
         };
         conn.execute_batch(SCHEMA).map_err(at)?;
-        let version: Option<String> = conn
-            .query_row(
-                "SELECT value FROM meta WHERE key = 'schema_version'",
-                [],
-                |r| r.get(0),
-            )
-            .optional()?;
+        let version: Option<String> = {
+            let mut st = conn.prepare("SELECT value FROM meta WHERE key = 'schema_version'")?;
+            let mut rows = st.query([])?;
+            match rows.next()? {
+                Some(r) => Some(r.get(0)?),
+                None => None,
+            }
+        };
         match version {
             None => {
                 conn.execute(
                     "INSERT INTO meta (key, value) VALUES ('schema_version', ?1)",
-                    params![SCHEMA_VERSION.to_string()],
+                    [SCHEMA_VERSION.to_string()],
                 )?;
             }
             Some(v) if v == SCHEMA_VERSION.to_string() => {}
@@ -568,15 +726,17 @@ impl Store {
                 )))
             }
         }
-        let mut store = Self {
-            conn,
+        let damaged_wal = match recovered {
+            Some(frames_recovered) => judge_wal(&conn, wal_bytes, frames_recovered)?,
+            None => None,
+        };
+        let store = Self {
+            db: Db::Lite(conn),
             path,
-            damaged_wal: None,
+            dir: dir.to_path_buf(),
+            damaged_wal,
             _lock: Some(lock),
         };
-        if let Some(frames_recovered) = recovered {
-            store.damaged_wal = store.judge_wal(wal_bytes, frames_recovered)?;
-        }
         if let Some(w) = &store.damaged_wal {
             tracing::warn!(
                 db = %store.path.display(),
@@ -607,48 +767,38 @@ impl Store {
         )?;
         conn.busy_timeout(std::time::Duration::from_secs(10))?;
         Ok(Self {
-            conn,
+            db: Db::Lite(conn),
             path,
+            dir: dir.to_path_buf(),
             damaged_wal: None,
             _lock: None,
         })
     }
 
-    /// After an open that found a non-empty write-ahead log of `wal_bytes` and replayed
-    /// `frames_recovered` of its frames: the counts, when they suggest the log was damaged
-    /// (SQLite recovered none of its frames, or fewer than the file holds and the database
-    /// holds no round). SQLite silently
-    /// cuts a log at its first bad checksum, so this is the only trace such a loss leaves.
-    fn judge_wal(
-        &self,
-        wal_bytes: u64,
-        frames_recovered: u64,
-    ) -> Result<Option<WalReport>, StoreError> {
-        let (rounds, feedback) = self.counts()?;
-        let page: i64 = self.conn.query_row("PRAGMA page_size", [], |r| r.get(0))?;
-        // A WAL is a 32-byte header and frames of a 24-byte header plus one page.
-        let frames_in_file = wal_bytes.saturating_sub(32) / (page.max(512) as u64 + 24);
-        // No round is suspicious only when frames were lost too: a server killed before its
-        // first round leaves a log of nothing but the schema, all of it recovered.
-        let damaged = frames_recovered == 0 || (rounds == 0 && frames_recovered < frames_in_file);
-        Ok(damaged.then_some(WalReport {
-            wal_bytes,
-            frames_in_file,
-            frames_recovered,
-            rounds,
-            feedback,
-        }))
-    }
-
+    /// SQLite: the database file; PostgreSQL: its URL without the password.
     pub fn path(&self) -> &Path {
         &self.path
     }
 
+    /// Whether this store is on PostgreSQL.
+    pub fn is_postgres(&self) -> bool {
+        self.db.is_pg()
+    }
+
+    /// On PostgreSQL, whether the writer's session (and with it the lease) is still alive: a
+    /// cheap round trip. Always `true` on SQLite.
+    pub fn alive(&self) -> bool {
+        match &self.db {
+            Db::Lite(_) => true,
+            Db::Pg(_) => self.db.query("SELECT 1", &[]).is_ok(),
+        }
+    }
+
     fn meta(&self, key: &str) -> Result<Option<String>, StoreError> {
-        Ok(self
-            .conn
-            .query_row("SELECT value FROM meta WHERE key = ?1", [key], |r| r.get(0))
-            .optional()?)
+        self.db
+            .query_opt("SELECT value FROM meta WHERE key = ?1", &[P::T(key)])?
+            .map(|r| r.string(0))
+            .transpose()
     }
 
     /// Records the identity on first use and refuses a database written under another one.
@@ -656,9 +806,9 @@ impl Store {
         let want = serde_json::to_string(id)?;
         match self.meta("identity")? {
             None => {
-                self.conn.execute(
+                self.db.exec(
                     "INSERT INTO meta (key, value) VALUES ('identity', ?1)",
-                    [&want],
+                    &[P::T(&want)],
                 )?;
                 Ok(())
             }
@@ -701,11 +851,7 @@ impl Store {
     }
 
     fn set_method(&self, method: &str) -> Result<(), StoreError> {
-        self.conn.execute(
-            "INSERT INTO meta (key, value) VALUES ('method', ?1)
-             ON CONFLICT(key) DO UPDATE SET value = excluded.value",
-            [method],
-        )?;
+        self.db.exec(SET_METHOD, &[P::T(method)])?;
         Ok(())
     }
 
@@ -751,11 +897,10 @@ impl Store {
         let method = engine.method().name().to_string();
         let stored = self.method()?;
         let migrate = stored.as_deref().is_some_and(|m| m != method);
-        let (rounds, max_seq): (i64, Option<i64>) =
-            self.conn
-                .query_row("SELECT COUNT(*), MAX(seq) FROM rounds", [], |r| {
-                    Ok((r.get(0)?, r.get(1)?))
-                })?;
+        let row = self
+            .db
+            .query_one("SELECT COUNT(*), MAX(seq) FROM rounds", &[])?;
+        let (rounds, max_seq) = (row.i64(0)?, row.opt_i64(1)?);
         let next_seq = max_seq.map(|m| m as u64 + 1).unwrap_or(0);
         let mut skipped = Vec::new();
         if snapshots && !migrate {
@@ -815,32 +960,32 @@ impl Store {
         })
     }
 
-    /// The data directory (the database's and the snapshots' parent).
+    /// The data directory (the snapshots' parent, and on SQLite the database's).
     pub fn dir(&self) -> &Path {
-        self.path.parent().unwrap_or(Path::new("."))
+        &self.dir
     }
 
     /// Where the engine stands in the stored history now: after every stored round and
     /// feedback (the single writer calls this between events, where that is the engine's
     /// state), with the anchors a later [`Store::load_engine`] checks a snapshot against.
     pub fn anchor(&self) -> Result<snapshot::Anchor, StoreError> {
-        let last_round: Option<(i64, i64)> = self
-            .conn
-            .query_row(
+        let last_round = self
+            .db
+            .query_opt(
                 "SELECT seq, created_ms FROM rounds ORDER BY seq DESC LIMIT 1",
-                [],
-                |r| Ok((r.get(0)?, r.get(1)?)),
-            )
-            .optional()?;
-        let last_feedback: Option<(i64, i64, i64)> = self
-            .conn
-            .query_row(
+                &[],
+            )?
+            .map(|r| Ok::<_, StoreError>((r.i64(0)?, r.i64(1)?)))
+            .transpose()?;
+        let last_feedback = self
+            .db
+            .query_opt(
                 "SELECT labelled_order, seq, created_ms FROM feedback
                  ORDER BY labelled_order DESC LIMIT 1",
-                [],
-                |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
-            )
-            .optional()?;
+                &[],
+            )?
+            .map(|r| Ok::<_, StoreError>((r.i64(0)?, r.i64(1)?, r.i64(2)?)))
+            .transpose()?;
         Ok(snapshot::Anchor {
             rounds: last_round.map_or(0, |(s, _)| s as u64 + 1),
             labelled: last_feedback.map_or(0, |(o, _, _)| o as u64 + 1),
@@ -863,14 +1008,13 @@ impl Store {
             )));
         }
         let round_at = |seq: u64| -> Result<Option<i64>, StoreError> {
-            Ok(self
-                .conn
-                .query_row(
+            self.db
+                .query_opt(
                     "SELECT created_ms FROM rounds WHERE seq = ?1",
-                    [seq as i64],
-                    |r| r.get(0),
-                )
-                .optional()?)
+                    &[P::I(seq as i64)],
+                )?
+                .map(|r| r.i64(0))
+                .transpose()
         };
         match (a.rounds, a.last_round) {
             (0, None) => {}
@@ -884,14 +1028,13 @@ impl Store {
             _ => return Ok(Some("its round anchor is malformed".into())),
         }
         let fb_at = |order: u64| -> Result<Option<(i64, i64)>, StoreError> {
-            Ok(self
-                .conn
-                .query_row(
+            self.db
+                .query_opt(
                     "SELECT seq, created_ms FROM feedback WHERE labelled_order = ?1",
-                    [order as i64],
-                    |r| Ok((r.get(0)?, r.get(1)?)),
-                )
-                .optional()?)
+                    &[P::I(order as i64)],
+                )?
+                .map(|r| Ok((r.i64(0)?, r.i64(1)?)))
+                .transpose()
         };
         match (a.labelled, a.last_feedback) {
             (0, None) => {}
@@ -996,49 +1139,36 @@ impl Store {
             labelled: first_fb,
             ..Replayed::default()
         };
-        let mut round_stmt = self.conn.prepare(
-            "SELECT r.seq, r.context, r.present, r.reports, d.inference,
-                    EXISTS (SELECT 1 FROM feedback f WHERE f.seq = r.seq)
-             FROM rounds r JOIN round_detail d ON d.seq = r.seq WHERE r.seq >= ?1 ORDER BY r.seq",
-        )?;
         let mut rounds = RoundFeed {
             rows: if fresh || engine.observes() {
-                Some(round_stmt.query([first_round as i64])?)
+                Some(Pager::new(&self.db, REPLAY_ROUNDS, 0, first_round))
             } else {
                 None
             },
             fed: first_round,
             fresh,
         };
-        let mut fb_stmt = self.conn.prepare(
-            "SELECT r.seq, r.context, r.present, r.reports, r.q, f.truth, f.outcome,
-                    f.rounds_before, f.labelled_order,
-                    EXISTS (SELECT 1 FROM feedback g
-                            WHERE g.seq = f.seq AND g.labelled_order > f.labelled_order)
-             FROM feedback f JOIN rounds r ON r.seq = f.seq
-             WHERE f.labelled_order >= ?1 ORDER BY f.labelled_order",
-        )?;
-        let mut fb_rows = fb_stmt.query([first_fb as i64])?;
+        let mut fb_rows = Pager::new(&self.db, REPLAY_FEEDBACK, 8, first_fb);
         let mut replay = Replay::new(engine);
         while let Some(row) = fb_rows.next()? {
-            let seq = row.get::<_, i64>(0)? as u64;
-            let before = row.get::<_, Option<i64>>(7)?.map_or(seq + 1, |b| b as u64);
+            let seq = row.u64(0)?;
+            let before = row.opt_i64(7)?.map_or(seq + 1, |b| b as u64);
             rounds.feed(before, &mut replay, &mut out)?;
             let stored = if fresh {
                 None
             } else {
                 Some(StoredLabel {
-                    round: round_from(row, 1)?,
-                    q: blob_to_f64s(row.get_ref(4)?.as_blob()?)?,
-                    outcome: serde_json::from_slice(row.get_ref(6)?.as_bytes()?)?,
+                    round: round_from(&row, 1)?,
+                    q: blob_to_f64s(row.blob(4)?)?,
+                    outcome: serde_json::from_str(row.str(6)?)?,
                 })
             };
-            let order = row.get::<_, i64>(8)? as u64;
+            let order = row.u64(8)?;
             let outcome = replay.feedback(FeedbackEvent {
                 seq,
-                truth: row.get_ref(5)?.as_blob()?.to_vec(),
+                truth: row.blob(5)?.to_vec(),
                 stored,
-                more: row.get::<_, bool>(9)?,
+                more: row.bool(9)?,
             })?;
             if fresh {
                 out.outcomes.push((order, outcome));
@@ -1057,57 +1187,49 @@ impl Store {
         engine: &Engine,
         replayed: &Replayed,
     ) -> Result<(), StoreError> {
-        let tx = self
-            .conn
-            .transaction_with_behavior(TransactionBehavior::Immediate)?;
-        {
-            let mut up =
-                tx.prepare_cached("UPDATE feedback SET outcome = ?2 WHERE labelled_order = ?1")?;
+        self.db.tx(|tx| {
             for (order, o) in &replayed.outcomes {
-                up.execute(params![*order as i64, serde_json::to_string(o)?])?;
+                tx.exec(
+                    "UPDATE feedback SET outcome = ?2 WHERE labelled_order = ?1",
+                    &[P::I(*order as i64), P::T(&serde_json::to_string(o)?)],
+                )?;
             }
-            let mut det =
-                tx.prepare_cached("UPDATE round_detail SET inference = ?2 WHERE seq = ?1")?;
-            let mut rq =
-                tx.prepare_cached("UPDATE rounds SET q = ?2, threshold = ?3 WHERE seq = ?1")?;
             for (seq, inf) in &replayed.inferences {
-                det.execute(params![*seq as i64, serde_json::to_string(inf)?])?;
-                rq.execute(params![
-                    *seq as i64,
-                    f64s_to_blob(&inf.q),
-                    inf.thresholds.first().copied().unwrap_or(f64::NAN)
-                ])?;
-            }
-            if replayed.labelled > 0 {
-                tx.execute(
-                    "UPDATE state SET reputations = ?1, labelled = ?2 WHERE id = 1",
-                    params![
-                        serde_json::to_string(engine.reputations())?,
-                        replayed.labelled as i64
+                tx.exec(
+                    "UPDATE round_detail SET inference = ?2 WHERE seq = ?1",
+                    &[P::I(*seq as i64), P::T(&serde_json::to_string(inf)?)],
+                )?;
+                tx.exec(
+                    "UPDATE rounds SET q = ?2, threshold = ?3 WHERE seq = ?1",
+                    &[
+                        P::I(*seq as i64),
+                        P::B(&f64s_to_blob(&inf.q)),
+                        P::F(inf.thresholds.first().copied().unwrap_or(f64::NAN)),
                     ],
                 )?;
             }
-            tx.execute(
-                "INSERT INTO meta (key, value) VALUES ('method', ?1)
-                 ON CONFLICT(key) DO UPDATE SET value = excluded.value",
-                [method],
-            )?;
-        }
-        tx.commit()?;
-        Ok(())
+            if replayed.labelled > 0 {
+                tx.exec(
+                    "UPDATE state SET reputations = ?1, labelled = ?2 WHERE id = 1",
+                    &[
+                        P::T(&serde_json::to_string(engine.reputations())?),
+                        P::I(replayed.labelled as i64),
+                    ],
+                )?;
+            }
+            tx.exec(SET_METHOD, &[P::T(method)])?;
+            Ok(())
+        })
     }
 
     /// The state row is written in the same transaction as each feedback: a rebuild that
     /// disagrees with it means the tables were edited or damaged, and serving would be wrong.
     fn check_state(&self, engine: &Engine, labelled: u64) -> Result<(), StoreError> {
-        let state: Option<(String, i64)> = self
-            .conn
-            .query_row(
-                "SELECT reputations, labelled FROM state WHERE id = 1",
-                [],
-                |r| Ok((r.get(0)?, r.get(1)?)),
-            )
-            .optional()?;
+        let state = self
+            .db
+            .query_opt("SELECT reputations, labelled FROM state WHERE id = 1", &[])?
+            .map(|r| Ok::<_, StoreError>((r.string(0)?, r.i64(1)?)))
+            .transpose()?;
         match state {
             Some((w, lab)) => {
                 let w: Vec<f64> = serde_json::from_str(&w)?;
@@ -1142,12 +1264,7 @@ impl Store {
         rounds: &[NewRound],
         keys: &[IdempotencyRecord],
     ) -> Result<(), StoreError> {
-        let tx = self
-            .conn
-            .transaction_with_behavior(TransactionBehavior::Immediate)?;
-        write_rounds(&tx, first_seq, rounds, keys)?;
-        tx.commit()?;
-        Ok(())
+        self.db.tx(|tx| write_rounds(tx, first_seq, rounds, keys))
     }
 
     /// Rounds and the feedback that follows them, in one transaction: a bulk import's chunk.
@@ -1159,13 +1276,10 @@ impl Store {
         rounds: &[NewRound],
         fbs: &[StoredFeedback],
     ) -> Result<(), StoreError> {
-        let tx = self
-            .conn
-            .transaction_with_behavior(TransactionBehavior::Immediate)?;
-        write_rounds(&tx, first_seq, rounds, &[])?;
-        write_feedback(&tx, fbs)?;
-        tx.commit()?;
-        Ok(())
+        self.db.tx(|tx| {
+            write_rounds(tx, first_seq, rounds, &[])?;
+            write_feedback(tx, fbs)
+        })
     }
 
     /// Undoes everything stored after `to` (a point [`Store::anchor`] gave): the rounds from
@@ -1177,108 +1291,100 @@ impl Store {
         to: &snapshot::Anchor,
         reputations: &[f64],
     ) -> Result<(), StoreError> {
-        let tx = self
-            .conn
-            .transaction_with_behavior(TransactionBehavior::Immediate)?;
-        // Feedback on a round after `to` came after `to` too: the labelling order covers it.
-        tx.execute(
-            "DELETE FROM feedback WHERE labelled_order >= ?1",
-            [to.labelled as i64],
-        )?;
-        tx.execute(
-            "DELETE FROM round_detail WHERE seq >= ?1",
-            [to.rounds as i64],
-        )?;
-        tx.execute("DELETE FROM thumbnails WHERE seq >= ?1", [to.rounds as i64])?;
-        tx.execute("DELETE FROM rounds WHERE seq >= ?1", [to.rounds as i64])?;
-        if to.labelled == 0 {
-            tx.execute("DELETE FROM state", [])?;
-        } else {
-            tx.execute(
-                "UPDATE state SET reputations = ?1, labelled = ?2 WHERE id = 1",
-                params![serde_json::to_string(reputations)?, to.labelled as i64],
-            )?;
-        }
-        if to.rounds == 0 {
-            tx.execute("DELETE FROM meta WHERE key = 'dim'", [])?;
-        }
-        tx.commit()?;
-        Ok(())
+        self.db.tx(|tx| {
+            // Feedback on a round after `to` came after `to` too: the labelling order covers it.
+            let (r, l) = (P::I(to.rounds as i64), P::I(to.labelled as i64));
+            tx.exec("DELETE FROM feedback WHERE labelled_order >= ?1", &[l])?;
+            tx.exec("DELETE FROM round_detail WHERE seq >= ?1", &[r])?;
+            tx.exec("DELETE FROM thumbnails WHERE seq >= ?1", &[r])?;
+            tx.exec("DELETE FROM rounds WHERE seq >= ?1", &[r])?;
+            if to.labelled == 0 {
+                tx.exec("DELETE FROM state", &[])?;
+            } else {
+                tx.exec(
+                    "UPDATE state SET reputations = ?1, labelled = ?2 WHERE id = 1",
+                    &[P::T(&serde_json::to_string(reputations)?), l],
+                )?;
+            }
+            if to.rounds == 0 {
+                tx.exec("DELETE FROM meta WHERE key = 'dim'", &[])?;
+            }
+            Ok(())
+        })
     }
 }
 
 /// The rows of `rounds` from `first_seq`, and their idempotency keys, inside `tx`. The first
 /// round ever stored fixes the context dimension.
 fn write_rounds(
-    tx: &rusqlite::Transaction<'_>,
+    tx: &Db,
     first_seq: u64,
     rounds: &[NewRound],
     keys: &[IdempotencyRecord],
 ) -> Result<(), StoreError> {
-    {
-        if let Some(first) = rounds.first() {
-            let d = first.round.context.len();
-            let have: Option<String> = tx
-                .query_row("SELECT value FROM meta WHERE key = 'dim'", [], |r| r.get(0))
-                .optional()?;
-            match have {
-                None => {
-                    tx.execute(
-                        "INSERT INTO meta (key, value) VALUES ('dim', ?1)",
-                        [d.to_string()],
-                    )?;
-                }
-                Some(v) if v == d.to_string() => {}
-                Some(v) => {
-                    return Err(StoreError::Mismatch(format!(
-                        "context dimension {d}, but the database holds dimension {v}"
-                    )))
-                }
+    if let Some(first) = rounds.first() {
+        let d = first.round.context.len();
+        let have = tx
+            .query_opt("SELECT value FROM meta WHERE key = 'dim'", &[])?
+            .map(|r| r.string(0))
+            .transpose()?;
+        match have {
+            None => {
+                tx.exec(
+                    "INSERT INTO meta (key, value) VALUES ('dim', ?1)",
+                    &[P::T(&d.to_string())],
+                )?;
+            }
+            Some(v) if v == d.to_string() => {}
+            Some(v) => {
+                return Err(StoreError::Mismatch(format!(
+                    "context dimension {d}, but the database holds dimension {v}"
+                )))
             }
         }
-        let mut ins = tx.prepare_cached(
-                "INSERT INTO rounds (seq, round_id, created_ms, context, present, reports, q, threshold)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)",
-            )?;
-        let mut det = tx.prepare_cached(
+    }
+    for (i, r) in rounds.iter().enumerate() {
+        let seq = first_seq + i as u64;
+        let threshold = r.inference.thresholds.first().copied().unwrap_or(f64::NAN);
+        tx.exec(
+            "INSERT INTO rounds (seq, round_id, created_ms, context, present, reports, q, threshold)
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)",
+            &[
+                P::I(seq as i64),
+                P::T(&round_id(seq)),
+                P::I(r.created_ms),
+                P::B(&f64s_to_blob(&r.round.context)),
+                P::B(&bools_to_blob(&r.round.present)),
+                P::B(&r.round.reports),
+                P::B(&f64s_to_blob(&r.inference.q)),
+                P::F(threshold),
+            ],
+        )?;
+        tx.exec(
             "INSERT INTO round_detail (seq, inference, request) VALUES (?1, ?2, ?3)",
+            &[
+                P::I(seq as i64),
+                P::T(&serde_json::to_string(&r.inference)?),
+                P::T(&serde_json::to_string(&r.request)?),
+            ],
         )?;
-        for (i, r) in rounds.iter().enumerate() {
-            let seq = first_seq + i as u64;
-            let threshold = r.inference.thresholds.first().copied().unwrap_or(f64::NAN);
-            ins.execute(params![
-                seq as i64,
-                round_id(seq),
-                r.created_ms,
-                f64s_to_blob(&r.round.context),
-                bools_to_blob(&r.round.present),
-                &r.round.reports,
-                f64s_to_blob(&r.inference.q),
-                threshold,
-            ])?;
-            det.execute(params![
-                seq as i64,
-                serde_json::to_string(&r.inference)?,
-                serde_json::to_string(&r.request)?,
-            ])?;
-        }
-        let mut key = tx.prepare_cached(
+    }
+    browse::write_thumbnails(tx, first_seq, rounds)?;
+    for k in keys {
+        tx.exec(
             "INSERT INTO idempotency (key, route, fingerprint, response, created_ms)
-                 VALUES (?1, ?2, ?3, ?4, ?5)
-                 ON CONFLICT(key) DO UPDATE SET route = excluded.route,
-                   fingerprint = excluded.fingerprint, response = excluded.response,
-                   created_ms = excluded.created_ms",
+             VALUES (?1, ?2, ?3, ?4, ?5)
+             ON CONFLICT(key) DO UPDATE SET route = excluded.route,
+               fingerprint = excluded.fingerprint, response = excluded.response,
+               created_ms = excluded.created_ms",
+            &[
+                P::T(&k.key),
+                P::T(&k.route),
+                P::T(&k.fingerprint),
+                P::T(&serde_json::to_string(&k.response)?),
+                P::I(k.created_ms),
+            ],
         )?;
-        browse::write_thumbnails(tx, first_seq, rounds)?;
-        for k in keys {
-            key.execute(params![
-                k.key,
-                k.route,
-                k.fingerprint,
-                serde_json::to_string(&k.response)?,
-                k.created_ms,
-            ])?;
-        }
     }
     Ok(())
 }
@@ -1291,127 +1397,84 @@ impl Store {
         key: &str,
         not_before_ms: i64,
     ) -> Result<Option<IdempotencyRecord>, StoreError> {
-        let row = self
-            .conn
-            .query_row(
-                "SELECT route, fingerprint, response, created_ms FROM idempotency
-                 WHERE key = ?1 AND created_ms >= ?2",
-                params![key, not_before_ms],
-                |r| {
-                    Ok((
-                        r.get::<_, String>(0)?,
-                        r.get::<_, String>(1)?,
-                        r.get::<_, String>(2)?,
-                        r.get::<_, i64>(3)?,
-                    ))
-                },
-            )
-            .optional()?;
-        let Some((route, fingerprint, response, created_ms)) = row else {
+        let Some(row) = self.db.query_opt(
+            "SELECT route, fingerprint, response, created_ms FROM idempotency
+             WHERE key = ?1 AND created_ms >= ?2",
+            &[P::T(key), P::I(not_before_ms)],
+        )?
+        else {
             return Ok(None);
         };
         Ok(Some(IdempotencyRecord {
             key: key.to_string(),
-            route,
-            fingerprint,
-            response: serde_json::from_str(&response)?,
-            created_ms,
+            route: row.string(0)?,
+            fingerprint: row.string(1)?,
+            response: serde_json::from_str(row.str(2)?)?,
+            created_ms: row.i64(3)?,
         }))
     }
 
     /// Removes the idempotency keys created before `before_ms`; returns how many.
     pub fn prune_idempotency(&mut self, before_ms: i64) -> Result<usize, StoreError> {
-        Ok(self
-            .conn
-            .execute("DELETE FROM idempotency WHERE created_ms < ?1", [before_ms])?)
+        Ok(self.db.exec(
+            "DELETE FROM idempotency WHERE created_ms < ?1",
+            &[P::I(before_ms)],
+        )? as usize)
     }
 
     /// How many idempotency keys are stored.
     pub fn idempotency_keys(&self) -> Result<u64, StoreError> {
-        let n: i64 = self
-            .conn
-            .query_row("SELECT COUNT(*) FROM idempotency", [], |r| r.get(0))?;
-        Ok(n as u64)
+        self.db
+            .query_one("SELECT COUNT(*) FROM idempotency", &[])?
+            .u64(0)
     }
 
     /// Reads a stored round with its frozen inference.
     pub fn round(&self, seq: u64) -> Result<Option<StoredRound>, StoreError> {
-        let row = self
-            .conn
-            .query_row(
-                "SELECT r.context, r.present, r.reports, d.inference
-                 FROM rounds r JOIN round_detail d ON d.seq = r.seq WHERE r.seq = ?1",
-                [seq as i64],
-                |row| {
-                    Ok((
-                        row.get::<_, Vec<u8>>(0)?,
-                        row.get::<_, Vec<u8>>(1)?,
-                        row.get::<_, Vec<u8>>(2)?,
-                        row.get::<_, String>(3)?,
-                    ))
-                },
-            )
-            .optional()?;
-        let Some((ctx, present, reports, inf)) = row else {
+        let Some(row) = self.db.query_opt(
+            "SELECT r.context, r.present, r.reports, d.inference
+             FROM rounds r JOIN round_detail d ON d.seq = r.seq WHERE r.seq = ?1",
+            &[P::I(seq as i64)],
+        )?
+        else {
             return Ok(None);
         };
         Ok(Some(StoredRound {
             seq,
             round_id: round_id(seq),
-            round: Round {
-                context: blob_to_f64s(&ctx)?,
-                present: present.iter().map(|&b| b != 0).collect(),
-                reports,
-            },
-            inference: serde_json::from_str(&inf)?,
+            round: round_from(&row, 0)?,
+            inference: serde_json::from_str(row.str(3)?)?,
         }))
     }
 
     /// The request JSON stored with a round.
     pub fn request(&self, seq: u64) -> Result<Option<serde_json::Value>, StoreError> {
-        let s: Option<String> = self
-            .conn
-            .query_row(
-                "SELECT request FROM round_detail WHERE seq = ?1",
-                [seq as i64],
-                |r| r.get(0),
-            )
-            .optional()?;
-        Ok(match s {
-            Some(s) => Some(serde_json::from_str(&s)?),
-            None => None,
-        })
+        self.round_request(seq)
     }
 
     /// The request a round was stored with (its reports, and for `/v1/infer` the clip's
     /// metadata), if the round exists.
     pub fn round_request(&self, seq: u64) -> Result<Option<serde_json::Value>, StoreError> {
-        let text: Option<String> = self
-            .conn
-            .query_row(
+        self.db
+            .query_opt(
                 "SELECT request FROM round_detail WHERE seq = ?1",
-                [seq as i64],
-                |r| r.get(0),
-            )
-            .optional()?;
-        Ok(match text {
-            Some(t) => Some(serde_json::from_str(&t)?),
-            None => None,
-        })
+                &[P::I(seq as i64)],
+            )?
+            .map(|r| Ok(serde_json::from_str(r.str(0)?)?))
+            .transpose()
     }
 
     /// The feedback events acknowledged for a round, in labelling order (empty: none).
     pub fn feedback(&self, seq: u64) -> Result<Vec<StoredFeedback>, StoreError> {
-        let mut st = self.conn.prepare_cached(
-            "SELECT labelled_order, truth, outcome, rounds_before, source FROM feedback
-             WHERE seq = ?1 ORDER BY labelled_order",
-        )?;
-        let mut rows = st.query([seq as i64])?;
-        let mut out = Vec::new();
-        while let Some(row) = rows.next()? {
-            out.push(feedback_from(row, seq, 0)?);
-        }
-        Ok(out)
+        self.db
+            .query(
+                "SELECT labelled_order, truth, outcome, rounds_before, source FROM feedback
+                 WHERE seq = ?1 ORDER BY labelled_order",
+                &[P::I(seq as i64)],
+            )?
+            .iter()
+            .map(|row| feedback_from(row, seq, 0))
+            .collect()
     }
 
     /// Commits feedback, in labelling order, and the reputations the last one leads to, in one
@@ -1420,12 +1483,7 @@ impl Store {
         if fbs.is_empty() {
             return Ok(());
         }
-        let tx = self
-            .conn
-            .transaction_with_behavior(TransactionBehavior::Immediate)?;
-        write_feedback(&tx, fbs)?;
-        tx.commit()?;
-        Ok(())
+        self.db.tx(|tx| write_feedback(tx, fbs))
     }
 }
 
@@ -1458,72 +1516,66 @@ fn migrate_v1_feedback(conn: &Connection) -> Result<(), StoreError> {
 }
 
 /// `fbs` in labelling order inside `tx`, and the state row after the last.
-fn write_feedback(
-    tx: &rusqlite::Transaction<'_>,
-    fbs: &[StoredFeedback],
-) -> Result<(), StoreError> {
+fn write_feedback(tx: &Db, fbs: &[StoredFeedback]) -> Result<(), StoreError> {
     let Some(last) = fbs.last() else {
         return Ok(());
     };
-    {
-        // The next labelling order: the highest stored plus one (an index lookup; a count
-        // would scan the table on every feedback).
-        let labelled: i64 = tx.query_row(
+    // The next labelling order: the highest stored plus one (an index lookup; a count
+    // would scan the table on every feedback).
+    let labelled = tx
+        .query_one(
             "SELECT COALESCE(MAX(labelled_order) + 1, 0) FROM feedback",
-            [],
-            |r| r.get(0),
-        )?;
-        let mut ins = tx.prepare_cached(
+            &[],
+        )?
+        .u64(0)?;
+    let now = now_ms();
+    for (i, fb) in fbs.iter().enumerate() {
+        if labelled + i as u64 != fb.labelled_order {
+            return Err(StoreError::Corrupt(format!(
+                "feedback would be number {} in labelling order, but {} precede it",
+                fb.labelled_order,
+                labelled + i as u64
+            )));
+        }
+        tx.exec(
             "INSERT INTO feedback (seq, labelled_order, created_ms, truth, outcome, rounds_before,
                                    source)
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
-        )?;
-        let now = now_ms();
-        for (i, fb) in fbs.iter().enumerate() {
-            if labelled as u64 + i as u64 != fb.labelled_order {
-                return Err(StoreError::Corrupt(format!(
-                    "feedback would be number {} in labelling order, but {} precede it",
-                    fb.labelled_order,
-                    labelled as u64 + i as u64
-                )));
-            }
-            ins.execute(params![
-                fb.seq as i64,
-                fb.labelled_order as i64,
-                now,
-                &fb.truth,
-                serde_json::to_string(&fb.outcome)?,
-                fb.rounds_before as i64,
-                &fb.source
-            ])?;
-        }
-        tx.execute(
-            "INSERT INTO state (id, reputations, labelled) VALUES (1, ?1, ?2)
-                 ON CONFLICT(id) DO UPDATE SET reputations = excluded.reputations,
-                                               labelled = excluded.labelled",
-            params![
-                serde_json::to_string(&last.outcome.w_after)?,
-                last.labelled_order as i64 + 1
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
+            &[
+                P::I(fb.seq as i64),
+                P::I(fb.labelled_order as i64),
+                P::I(now),
+                P::B(&fb.truth),
+                P::T(&serde_json::to_string(&fb.outcome)?),
+                P::I(fb.rounds_before as i64),
+                P::T(&fb.source),
             ],
         )?;
     }
+    tx.exec(
+        "INSERT INTO state (id, reputations, labelled) VALUES (1, ?1, ?2)
+         ON CONFLICT(id) DO UPDATE SET reputations = excluded.reputations,
+                                       labelled = excluded.labelled",
+        &[
+            P::T(&serde_json::to_string(&last.outcome.w_after)?),
+            P::I(last.labelled_order as i64 + 1),
+        ],
+    )?;
     Ok(())
 }
 
 impl Store {
     /// Counts of stored rounds and feedback, for tests and `/v1/state`.
     pub fn counts(&self) -> Result<(u64, u64), StoreError> {
-        let r: i64 = self
-            .conn
-            .query_row("SELECT COUNT(*) FROM rounds", [], |r| r.get(0))?;
-        let f: i64 = self
-            .conn
-            .query_row("SELECT COUNT(*) FROM feedback", [], |r| r.get(0))?;
-        Ok((r as u64, f as u64))
+        let r = self.db.query_one("SELECT COUNT(*) FROM rounds", &[])?;
+        let f = self.db.query_one("SELECT COUNT(*) FROM feedback", &[])?;
+        Ok((r.u64(0)?, f.u64(0)?))
     }
 }
 
 pub mod browse;
+mod db;
+pub mod pg;
 pub mod snapshot;
 
 #[cfg(test)]

@@ -186,8 +186,8 @@ fn a_tampered_state_is_detected() {
     let mut store = Store::open(dir.path()).unwrap();
     play(&mut live, &mut store, 0, 10);
     store
-        .conn
-        .execute("UPDATE state SET reputations = '[0.5, 0.25, 0.25]'", [])
+        .db
+        .exec("UPDATE state SET reputations = '[0.5, 0.25, 0.25]'", &[])
         .unwrap();
     let err = store.load_engine(&mut engine()).unwrap_err();
     assert!(matches!(err, StoreError::Corrupt(_)), "{err}");
@@ -774,12 +774,12 @@ fn an_unusable_snapshot_is_skipped_with_its_reason() {
 fn at_80(dir: &Path) -> snapshot::Anchor {
     let store = Store::open_read_only(dir).unwrap();
     let ms: i64 = store
-        .conn
-        .query_row(
+        .db
+        .query_one(
             "SELECT created_ms FROM feedback WHERE labelled_order = 63",
-            [],
-            |r| r.get(0),
+            &[],
         )
+        .and_then(|r| r.i64(0))
         .unwrap();
     snapshot::Anchor {
         rounds: 80,
@@ -870,8 +870,8 @@ fn a_schema_1_database_is_upgraded_in_place() {
     play(&mut live, &mut store, 0, 40);
     // Turn it back into what schema 1 wrote.
     store
-        .conn
-        .execute_batch(
+        .db
+        .batch(
             "BEGIN;
              CREATE TABLE feedback_v1 (
                  seq            INTEGER PRIMARY KEY REFERENCES rounds(seq),
@@ -892,12 +892,9 @@ fn a_schema_1_database_is_upgraded_in_place() {
     drop(store);
     let mut store = Store::open(dir.path()).unwrap();
     let v: String = store
-        .conn
-        .query_row(
-            "SELECT value FROM meta WHERE key = 'schema_version'",
-            [],
-            |r| r.get(0),
-        )
+        .db
+        .query_one("SELECT value FROM meta WHERE key = 'schema_version'", &[])
+        .and_then(|r| r.string(0))
         .unwrap();
     assert_eq!(v, "2");
     let fb = store.feedback(3).unwrap();
@@ -916,3 +913,6 @@ fn a_schema_1_database_is_upgraded_in_place() {
     store.insert_feedback(&[second]).unwrap();
     assert_eq!(store.feedback(3).unwrap().len(), 2);
 }
+
+#[path = "pg_tests.rs"]
+mod pg_tests;
