@@ -121,8 +121,29 @@ fn pg_sql(sql: &str) -> String {
 
 /// A PostgreSQL session with its prepared statements.
 pub(crate) struct PgConn {
-    pub(crate) client: postgres::Client,
+    /// `None` only while being dropped.
+    client: Option<postgres::Client>,
     stmts: HashMap<&'static str, postgres::Statement>,
+}
+
+impl PgConn {
+    fn client(&mut self) -> &mut postgres::Client {
+        self.client.as_mut().expect("the client lives until drop")
+    }
+}
+
+impl Drop for PgConn {
+    /// The synchronous client closes its session by blocking on its own runtime, which panics
+    /// on a thread that drives another one (a store dropped by an async task); a thread of its
+    /// own does it anywhere.
+    fn drop(&mut self) {
+        if let Some(c) = self.client.take() {
+            let _ = std::thread::Builder::new()
+                .name("vlmfuse-pg-close".into())
+                .spawn(move || drop(c))
+                .map(|h| h.join());
+        }
+    }
 }
 
 /// An open database.
@@ -245,7 +266,7 @@ fn pg_row(row: &postgres::Row) -> Result<Row, StoreError> {
 impl Db {
     pub(crate) fn pg(client: postgres::Client) -> Self {
         Db::Pg(RefCell::new(PgConn {
-            client,
+            client: Some(client),
             stmts: HashMap::new(),
         }))
     }
@@ -265,12 +286,12 @@ impl Db {
         let st = match c.stmts.get(sql) {
             Some(st) => st.clone(),
             None => {
-                let st = c.client.prepare(&pg_sql(sql))?;
+                let st = c.client().prepare(&pg_sql(sql))?;
                 c.stmts.insert(sql, st.clone());
                 st
             }
         };
-        f(&mut c.client, &st)
+        f(c.client(), &st)
     }
 
     /// Runs a statement; the number of rows it changed.
@@ -331,7 +352,7 @@ impl Db {
     pub(crate) fn batch(&self, sql: &str) -> Result<(), StoreError> {
         match self {
             Db::Lite(c) => Ok(c.execute_batch(sql)?),
-            Db::Pg(c) => Ok(c.borrow_mut().client.batch_execute(sql)?),
+            Db::Pg(c) => Ok(c.borrow_mut().client().batch_execute(sql)?),
         }
     }
 

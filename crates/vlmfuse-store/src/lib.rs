@@ -593,6 +593,8 @@ pub struct Store {
     dir: PathBuf,
     /// What [`Store::open`] found of a damaged write-ahead log (logged as a warning).
     damaged_wal: Option<WalReport>,
+    /// On PostgreSQL, the writer lease this store holds.
+    lease: Option<pg::LeaseHeld>,
     /// Dropped after `db` (fields drop in order), so the lock outlives the last write.
     _lock: Option<DirLock>,
 }
@@ -630,12 +632,13 @@ impl Store {
             Location::Sqlite { dir } => Self::open_waiting(dir, wait),
             Location::Postgres(o) => {
                 let lock = DirLock::acquire(&o.data_dir, wait)?;
-                let db = pg::open_writer(o)?;
+                let (db, held) = pg::open_writer(o)?;
                 Ok(Self {
                     db,
                     path: PathBuf::from(o.redacted()),
                     dir: o.data_dir.clone(),
                     damaged_wal: None,
+                    lease: Some(held),
                     _lock: Some(lock),
                 })
             }
@@ -651,6 +654,7 @@ impl Store {
                 path: PathBuf::from(o.redacted()),
                 dir: o.data_dir.clone(),
                 damaged_wal: None,
+                lease: None,
                 _lock: None,
             }),
         }
@@ -735,6 +739,7 @@ impl Store {
             path,
             dir: dir.to_path_buf(),
             damaged_wal,
+            lease: None,
             _lock: Some(lock),
         };
         if let Some(w) = &store.damaged_wal {
@@ -771,6 +776,7 @@ impl Store {
             path,
             dir: dir.to_path_buf(),
             damaged_wal: None,
+            lease: None,
             _lock: None,
         })
     }
@@ -778,6 +784,11 @@ impl Store {
     /// SQLite: the database file; PostgreSQL: its URL without the password.
     pub fn path(&self) -> &Path {
         &self.path
+    }
+
+    /// On PostgreSQL, the writer lease this store holds (`None` for a reader and on SQLite).
+    pub fn lease(&self) -> Option<&pg::LeaseHeld> {
+        self.lease.as_ref()
     }
 
     /// Whether this store is on PostgreSQL.

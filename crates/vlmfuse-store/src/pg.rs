@@ -259,7 +259,8 @@ fn holder(db: &Db) -> String {
 
 /// Takes the writer lease on `db`, polling for up to `wait`.
 fn take_lease(db: &Db, o: &PgOptions, wait: Duration) -> Result<(), StoreError> {
-    let deadline = Instant::now() + wait;
+    // `None`: wait without limit (a standby's `Duration::MAX`).
+    let deadline = Instant::now().checked_add(wait);
     let mut logged = false;
     loop {
         let got = db
@@ -268,7 +269,7 @@ fn take_lease(db: &Db, o: &PgOptions, wait: Duration) -> Result<(), StoreError> 
         if got {
             return Ok(());
         }
-        if Instant::now() >= deadline {
+        if deadline.is_some_and(|d| Instant::now() >= d) {
             return Err(StoreError::Leased {
                 url: o.redacted(),
                 holder: holder(db),
@@ -282,9 +283,16 @@ fn take_lease(db: &Db, o: &PgOptions, wait: Duration) -> Result<(), StoreError> 
     }
 }
 
+/// The writer lease this store holds: who (this replica's name) and since when.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct LeaseHeld {
+    pub holder: String,
+    pub since_ms: i64,
+}
+
 /// The writer's session: connected, holding the lease, the schema created or checked, the
 /// lease row naming this replica.
-pub(crate) fn open_writer(o: &PgOptions) -> Result<Db, StoreError> {
+pub(crate) fn open_writer(o: &PgOptions) -> Result<(Db, LeaseHeld), StoreError> {
     let db = Db::pg(connect(o, false)?);
     take_lease(&db, o, o.lease_wait)?;
     // Only the lease holder creates or migrates tables, so replicas starting together do not
@@ -308,13 +316,17 @@ pub(crate) fn open_writer(o: &PgOptions) -> Result<Db, StoreError> {
             )))
         }
     }
+    let held = LeaseHeld {
+        holder: o.holder_name(),
+        since_ms: crate::timestamp_ms(),
+    };
     db.exec(
         "INSERT INTO lease (id, holder, since_ms) VALUES (1, ?1, ?2)
          ON CONFLICT(id) DO UPDATE SET holder = excluded.holder, since_ms = excluded.since_ms",
-        &[P::T(&o.holder_name()), P::I(crate::timestamp_ms())],
+        &[P::T(&held.holder), P::I(held.since_ms)],
     )?;
-    tracing::info!(db = %o.redacted(), holder = %o.holder_name(), "holding the writer lease");
-    Ok(db)
+    tracing::info!(db = %o.redacted(), holder = %held.holder, "holding the writer lease");
+    Ok((db, held))
 }
 
 /// A read-only session beside the writer.

@@ -149,7 +149,10 @@ pub fn import(
         cfg.reporters.clone(),
     )
     .context("fusion engine")?;
-    let mut store = Store::open(&cfg.server.data_dir)?;
+    let mut store = Store::open_at(
+        &cfg.store.location(&cfg.server.data_dir),
+        std::time::Duration::ZERO,
+    )?;
     store.check_identity(&Identity {
         reporters: cfg.reporters.clone(),
         labels: cfg.ontology.ids().map(str::to_string).collect(),

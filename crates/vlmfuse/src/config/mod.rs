@@ -20,6 +20,7 @@ mod labeler;
 mod media;
 mod reporter;
 mod server;
+mod store;
 mod ui;
 
 pub use annotate::AnnotateSection;
@@ -31,6 +32,7 @@ pub use labeler::{
 pub use media::MediaConfig;
 pub use reporter::{ReporterBackend, ReporterEntry};
 pub use server::{Limits, ServerConfig, DEFAULT_DATA_DIR, DEFAULT_LISTEN};
+pub use store::StoreSection;
 pub use ui::UiSection;
 
 use anyhow::{bail, ensure, Context};
@@ -61,6 +63,9 @@ pub struct Config {
     pub assets_dir: Option<PathBuf>,
     #[command(flatten)]
     pub server: ServerConfig,
+    /// Where the fusion state lives (SQLite under `server.data_dir`, or PostgreSQL).
+    #[command(flatten)]
+    pub store: StoreSection,
     #[command(flatten)]
     pub limits: Limits,
     #[arg(skip)]
@@ -105,6 +110,7 @@ impl Default for Config {
             reporters: DEFAULT_REPORTERS.map(String::from).to_vec(),
             assets_dir: None,
             server: ServerConfig::default(),
+            store: StoreSection::default(),
             limits: Limits::default(),
             fusion: FusionConfig::default(),
             // The paper's labels with the glosses the labelers are evaluated with.

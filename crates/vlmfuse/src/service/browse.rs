@@ -79,15 +79,21 @@ impl Service {
         f: impl FnOnce(&Store) -> Result<T, ServiceError> + Send + 'static,
     ) -> Result<T, ServiceError> {
         let reader = self.reader.clone();
-        let dir = self.cfg.server.data_dir.clone();
+        let at = self.cfg.store.location(&self.cfg.server.data_dir);
         tokio::task::spawn_blocking(move || {
             let mut guard = reader
                 .lock()
                 .map_err(|_| ServiceError::Internal("the page's reader panicked".into()))?;
             if guard.is_none() {
-                *guard = Some(Store::open_read_only(&dir)?);
+                *guard = Some(Store::open_read_only_at(&at)?);
             }
-            f(guard.as_ref().expect("opened"))
+            let res = f(guard.as_ref().expect("opened"));
+            // A PostgreSQL session that broke (a restarted server, a cut network) is opened
+            // anew by the next read instead of failing every read after it.
+            if res.is_err() && guard.as_ref().is_some_and(|s| !s.alive()) {
+                *guard = None;
+            }
+            res
         })
         .await
         .map_err(|e| ServiceError::Internal(format!("reader task failed: {e}")))?

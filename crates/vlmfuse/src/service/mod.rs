@@ -127,6 +127,18 @@ pub struct Service {
     reader: Arc<Mutex<Option<Store>>>,
     /// Aborts the reporter probes when the service is dropped.
     _probes: Option<readiness::ProbeTask>,
+    /// Which store this replica writes, and on PostgreSQL the lease it holds (for `/readyz`).
+    store_info: StoreInfo,
+}
+
+/// What `/readyz` says of the store beside its health.
+#[derive(Debug, Clone)]
+pub struct StoreInfo {
+    /// `sqlite` or `postgres`.
+    pub backend: &'static str,
+    /// The SQLite file, or the PostgreSQL URL without its password.
+    pub location: String,
+    pub lease: Option<vlmfuse_store::pg::LeaseHeld>,
 }
 
 /// The prefix of every spooled upload; only such files are ever removed from the spool.
@@ -190,7 +202,7 @@ impl Service {
     ) -> anyhow::Result<(Service, JoinHandle<()>)> {
         use anyhow::Context;
         let start = Instant::now();
-        let mut engine = Engine::new(
+        let engine = Engine::new(
             cfg.fusion.clone(),
             cfg.ontology.clone(),
             cfg.reporters.clone(),
@@ -199,62 +211,76 @@ impl Service {
         // The data directory's lock: a second server on it is refused here, naming the
         // holder's pid, instead of colliding on round numbers later. The wait covers a restart
         // that overlaps the previous process's last commit.
-        let mut store = Store::open_waiting(&cfg.server.data_dir, STORE_LOCK_WAIT)?;
-        let spool = cfg.spool_dir();
-        let stale = clear_spool(&spool)
-            .with_context(|| format!("upload spool directory {}", spool.display()))?;
-        if stale > 0 {
-            tracing::info!(files = stale, dir = %spool.display(), "removed uploads a previous run left behind");
-        }
-        store.check_identity(&Identity {
-            reporters: cfg.reporters.clone(),
-            labels: cfg.ontology.ids().map(str::to_string).collect(),
-        })?;
-        let loaded = store
-            .load_engine(&mut engine)
-            .with_context(|| format!("rebuilding the engine from {}", store.path().display()))?;
-        if let Some(from) = &loaded.migrated_from {
-            tracing::warn!(
-                from = %from,
-                to = engine.method().name(),
-                "the data directory was written under another fusion method: every round was \
-                 inferred again and every credit recomputed under the configured one"
-            );
-        }
-        if let Some(u) = &loaded.snapshot {
+        //
+        // On PostgreSQL this also takes the writer lease, waiting as `[store]` says (a standby:
+        // until the writer's session ends). Off the async threads: it may wait long.
+        // Every store call of the start runs off the async threads: a standby waits here for
+        // the lease, and the PostgreSQL client blocks on a runtime of its own.
+        let cfg_b = cfg.clone();
+        let (store, engine, loaded, dash) = tokio::task::spawn_blocking(move || {
+            let cfg = cfg_b;
+            let mut engine = engine;
+            let location = cfg.store.location(&cfg.server.data_dir);
+            let mut store = Store::open_at(&location, STORE_LOCK_WAIT)?;
+            let spool = cfg.spool_dir();
+            let stale = clear_spool(&spool)
+                .with_context(|| format!("upload spool directory {}", spool.display()))?;
+            if stale > 0 {
+                tracing::info!(files = stale, dir = %spool.display(), "removed uploads a previous run left behind");
+            }
+            store.check_identity(&Identity {
+                reporters: cfg.reporters.clone(),
+                labels: cfg.ontology.ids().map(str::to_string).collect(),
+            })?;
+            let loaded = store
+                .load_engine(&mut engine)
+                .with_context(|| format!("rebuilding the engine from {}", store.path().display()))?;
+            if let Some(from) = &loaded.migrated_from {
+                tracing::warn!(
+                    from = %from,
+                    to = engine.method().name(),
+                    "the data directory was written under another fusion method: every round was \
+                     inferred again and every credit recomputed under the configured one"
+                );
+            }
+            if let Some(u) = &loaded.snapshot {
+                tracing::info!(
+                    path = %u.path.display(),
+                    rounds = u.anchor.rounds,
+                    labelled = u.anchor.labelled,
+                    tail_rounds = u.tail_rounds,
+                    tail_feedback = u.tail_feedback,
+                    "engine loaded from a snapshot; replayed only the events after it"
+                );
+            }
             tracing::info!(
-                path = %u.path.display(),
-                rounds = u.anchor.rounds,
-                labelled = u.anchor.labelled,
-                tail_rounds = u.tail_rounds,
-                tail_feedback = u.tail_feedback,
-                "engine loaded from a snapshot; replayed only the events after it"
+                method = engine.method().name(),
+                rounds = loaded.rounds,
+                labelled = loaded.labelled,
+                secs = start.elapsed().as_secs_f64(),
+                db = %store.path().display(),
+                "state rebuilt from the database"
             );
-        }
-        tracing::info!(
-            method = engine.method().name(),
-            rounds = loaded.rounds,
-            labelled = loaded.labelled,
-            secs = start.elapsed().as_secs_f64(),
-            db = %store.path().display(),
-            "state rebuilt from the database"
-        );
+            let mut dash = dashboard::Dashboard::new(
+                cfg.ui.clone(),
+                engine.reporters().len(),
+                engine.ontology().labels().len(),
+            );
+            // The page's numbers are an aid: a store that cannot give them leaves the page empty
+            // until new events arrive, never stops the start.
+            let seed_start = Instant::now();
+            if let Err(e) = dash.seed(&store, loaded.labelled) {
+                tracing::warn!(error = %e, "operator page: could not read the latest events");
+            }
+            tracing::debug!(
+                secs = seed_start.elapsed().as_secs_f64(),
+                "operator page seeded from the store"
+            );
+            anyhow::Ok((store, engine, loaded, dash))
+        })
+        .await
+        .context("opening the store")??;
         metrics.scope(|| writer::publish_gauges(&engine));
-        let mut dash = dashboard::Dashboard::new(
-            cfg.ui.clone(),
-            engine.reporters().len(),
-            engine.ontology().labels().len(),
-        );
-        // The page's numbers are an aid: a store that cannot give them leaves the page empty
-        // until new events arrive, never stops the start.
-        let seed_start = Instant::now();
-        if let Err(e) = dash.seed(&store, loaded.labelled) {
-            tracing::warn!(error = %e, "operator page: could not read the latest events");
-        }
-        tracing::debug!(
-            secs = seed_start.elapsed().as_secs_f64(),
-            "operator page seeded from the store"
-        );
         let shared = Arc::new(Shared {
             reporter_names: engine.reporters().to_vec(),
             engine: tokio::sync::RwLock::new(engine),
@@ -297,6 +323,22 @@ impl Service {
                     .context("fixing the context dimension to the embedder's")?,
             }
         }
+        let store_info = StoreInfo {
+            backend: if store.is_postgres() {
+                "postgres"
+            } else {
+                "sqlite"
+            },
+            location: store.path().display().to_string(),
+            lease: store.lease().cloned(),
+        };
+        if let Some(l) = &store_info.lease {
+            metrics.scope(|| {
+                metrics::gauge!("vlmfuse_store_lease_held").set(1.0);
+                metrics::gauge!("vlmfuse_store_lease_since_seconds")
+                    .set(l.since_ms as f64 / 1000.0);
+            });
+        }
         let (tx, writer) = writer::spawn(
             store,
             shared.clone(),
@@ -330,6 +372,7 @@ impl Service {
                 health,
                 reader: Arc::new(Mutex::new(None)),
                 _probes: probes,
+                store_info,
             },
             writer,
         ))

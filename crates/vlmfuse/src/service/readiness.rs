@@ -222,6 +222,16 @@ impl Service {
         if let Some(why) = &store_problem {
             store["error"] = why.clone().into();
         }
+        let info = &self.store_info;
+        store["backend"] = info.backend.into();
+        store["location"] = info.location.clone().into();
+        if let Some(l) = &info.lease {
+            // This replica writes: it holds the lease (a standby does not serve until it does).
+            store["role"] = "writer".into();
+            store["replica"] = l.holder.clone().into();
+            store["lease_age_s"] =
+                (((vlmfuse_store::timestamp_ms() - l.since_ms).max(0)) as f64 / 1000.0).into();
+        }
         components.insert("store".into(), store);
 
         let embedder = match &cfg.embedder {

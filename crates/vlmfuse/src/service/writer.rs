@@ -476,12 +476,14 @@ fn run(
     rx: mpsc::Receiver<Cmd>,
 ) {
     let mut dim = shared.engine.blocking_read().dim();
+    let mut lease = Lease::new(store);
     loop {
         // Wake at least once a second while idle, so a snapshot due by time is written even
-        // when no request comes.
+        // when no request comes, and the writer lease's session sees a sign of life.
         let first = match rx.recv_timeout(std::time::Duration::from_secs(1)) {
             Ok(c) => c,
             Err(mpsc::RecvTimeoutError::Timeout) => {
+                lease.check(store, shared);
                 snaps.maybe(store, shared, false);
                 continue;
             }
@@ -531,7 +533,50 @@ fn run(
             }
         }
         flush_inserts(store, shared, keys, &mut dim, inserts);
+        lease.check(store, shared);
         snaps.maybe(store, shared, false);
+    }
+}
+
+/// The PostgreSQL writer lease, seen from the writer: its session must show a sign of life at
+/// least every `lease_timeout` (or the server ends it, `idle_session_timeout`), and once it has
+/// ended this process may no longer write, for another replica may already be writing.
+struct Lease {
+    on: bool,
+    last: Instant,
+}
+
+/// The exit status of a writer that lost its lease (EX_TEMPFAIL): its supervisor restarts it,
+/// and it comes back as a standby.
+pub const LEASE_LOST_EXIT: i32 = 75;
+
+impl Lease {
+    fn new(store: &Store) -> Self {
+        Lease {
+            on: store.is_postgres(),
+            last: Instant::now(),
+        }
+    }
+
+    /// At most once a second: a round trip on the lease's session. When it fails the writes
+    /// are refused and the process exits ([`LEASE_LOST_EXIT`]): nothing it acknowledged is
+    /// lost (each acknowledgement followed its commit), and it cannot commit anything more.
+    fn check(&mut self, store: &Store, shared: &Shared) {
+        if !self.on || self.last.elapsed() < std::time::Duration::from_secs(1) {
+            return;
+        }
+        self.last = Instant::now();
+        if store.alive() {
+            metrics::gauge!("vlmfuse_store_lease_held").set(1.0);
+            return;
+        }
+        metrics::gauge!("vlmfuse_store_lease_held").set(0.0);
+        shared.mark_broken(format!(
+            "lost the writer lease on {}: its database session ended (another replica may \
+             be writing now); exiting with status {LEASE_LOST_EXIT} to restart as a standby",
+            store.path().display()
+        ));
+        std::process::exit(LEASE_LOST_EXIT);
     }
 }
 

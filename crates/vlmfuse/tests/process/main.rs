@@ -9,6 +9,7 @@ mod eval_cli;
 mod label_cli;
 mod readiness;
 mod replay;
+mod replicas;
 mod shutdown;
 mod slowloris;
 mod soak;

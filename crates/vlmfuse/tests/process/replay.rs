@@ -10,7 +10,7 @@ use std::process::Command;
 use vlmfuse_testkit::rounds::{generate_rounds, read_jsonl, sorted_reporters, write_jsonl};
 
 /// The lead's realistic file when present, else a generated one.
-fn rounds(tmp: &Path) -> (Vec<Value>, PathBuf) {
+pub(crate) fn rounds(tmp: &Path) -> (Vec<Value>, PathBuf) {
     let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/rounds.jsonl");
     let rounds = if shipped.exists() {
         read_jsonl(&shipped)
@@ -46,32 +46,32 @@ fn eval(file: &Path, out: &Path) -> Vec<Value> {
 
 /// What the service said about one round.
 #[derive(Debug, Clone, PartialEq)]
-struct Seen {
-    fuse: Value,
-    feedback: Option<Value>,
+pub(crate) struct Seen {
+    pub(crate) fuse: Value,
+    pub(crate) feedback: Option<Value>,
 }
 
-fn without_truth(r: &Value) -> Value {
+pub(crate) fn without_truth(r: &Value) -> Value {
     let mut r = r.clone();
     r.as_object_mut().unwrap().remove("truth");
     r
 }
 
-fn truth(r: &Value) -> Option<Value> {
+pub(crate) fn truth(r: &Value) -> Option<Value> {
     r.get("truth").filter(|t| !t.is_null()).cloned()
 }
 
 /// Where an interrupted replay got to.
 #[derive(Default)]
-struct Progress {
-    seen: Vec<Seen>,
+pub(crate) struct Progress {
+    pub(crate) seen: Vec<Seen>,
     /// A round whose fuse was acknowledged (`round_id`, answer) but whose feedback was not.
-    pending: Option<(String, Value)>,
+    pub(crate) pending: Option<(String, Value)>,
 }
 
 /// Replays the rounds not yet seen; stops at the first transport error (the server died) and
 /// returns false.
-fn replay(addr: &str, rounds: &[Value], prog: &mut Progress) -> bool {
+pub(crate) fn replay(addr: &str, rounds: &[Value], prog: &mut Progress) -> bool {
     while prog.seen.len() < rounds.len() {
         let i = prog.seen.len();
         let r = &rounds[i];
@@ -192,7 +192,7 @@ fn compare_with_eval(seen: &[Seen], emitted: &[Value]) {
 
 /// The same answers, bit for bit (round ids included: the retried fuse reuses its request id,
 /// so the kill leaves no orphan round behind).
-fn assert_identical(a: &[Seen], b: &[Seen]) {
+pub(crate) fn assert_identical(a: &[Seen], b: &[Seen]) {
     assert_eq!(a.len(), b.len());
     for (i, (x, y)) in a.iter().zip(b).enumerate() {
         assert_eq!(x.fuse, y.fuse, "round {i}: fuse differs");

@@ -21,6 +21,12 @@ pub struct Server {
 impl Server {
     /// Starts `vlmfuse serve` on an ephemeral port and waits for its "listening" line.
     pub fn start(data_dir: &Path, args: &[&str], env: &[(&str, &str)]) -> Server {
+        Self::spawn(data_dir, args, env).wait(Duration::from_secs(60))
+    }
+
+    /// Starts `vlmfuse serve` on an ephemeral port without waiting for it to listen (a
+    /// standby listens only once it holds the writer lease).
+    pub fn spawn(data_dir: &Path, args: &[&str], env: &[(&str, &str)]) -> Starting {
         std::fs::create_dir_all(data_dir).unwrap();
         let log = std::fs::OpenOptions::new()
             .create(true)
@@ -53,17 +59,9 @@ impl Server {
                 }
             }
         });
-        let addr = match rx.recv_timeout(Duration::from_secs(60)) {
-            Ok(a) => a,
-            Err(_) => {
-                let _ = child.kill();
-                let log = std::fs::read_to_string(data_dir.join("server.log")).unwrap_or_default();
-                panic!("server did not start; log:\n{log}");
-            }
-        };
-        Server {
-            child,
-            addr,
+        Starting {
+            child: Some(child),
+            rx,
             data_dir: data_dir.to_path_buf(),
         }
     }
@@ -105,6 +103,63 @@ impl Drop for Server {
     fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
+    }
+}
+
+/// A server process that has not said it listens yet.
+pub struct Starting {
+    child: Option<Child>,
+    rx: mpsc::Receiver<String>,
+    pub data_dir: PathBuf,
+}
+
+impl Starting {
+    /// Its address once it listens, without waiting; `None` while it does not.
+    pub fn listening(&mut self) -> Option<String> {
+        self.rx.try_recv().ok()
+    }
+
+    /// The child's exit status if it has exited.
+    pub fn exited(&mut self) -> Option<std::process::ExitStatus> {
+        self.child
+            .as_mut()
+            .and_then(|c| c.try_wait().ok().flatten())
+    }
+
+    pub fn pid(&self) -> u32 {
+        self.child.as_ref().map_or(0, |c| c.id())
+    }
+
+    /// The server, once it listens (within `timeout`, or the test fails with its log).
+    pub fn wait(mut self, timeout: Duration) -> Server {
+        match self.rx.recv_timeout(timeout) {
+            Ok(addr) => self.into_server(addr),
+            Err(_) => {
+                let mut c = self.child.take().unwrap();
+                let _ = c.kill();
+                let log =
+                    std::fs::read_to_string(self.data_dir.join("server.log")).unwrap_or_default();
+                panic!("server did not start; log:\n{log}");
+            }
+        }
+    }
+
+    /// The server listening at `addr` (which [`Starting::listening`] gave).
+    pub fn into_server(mut self, addr: String) -> Server {
+        Server {
+            child: self.child.take().unwrap(),
+            addr,
+            data_dir: self.data_dir.clone(),
+        }
+    }
+}
+
+impl Drop for Starting {
+    fn drop(&mut self) {
+        if let Some(c) = self.child.as_mut() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
     }
 }
 

@@ -1,0 +1,269 @@
+//! Replicas on one PostgreSQL database (a real server, started on a loopback port with a
+//! temporary data directory and stopped by PID): one writer at a time through the lease, a
+//! standby that takes over after `kill -9` of the writer and loses nothing acknowledged, and a
+//! writer whose database session is cut that stops writing before another takes over.
+
+use crate::replay::{assert_identical, replay, rounds, truth, Progress};
+use crate::support::*;
+use serde_json::{json, Value};
+use std::process::Command;
+use std::time::{Duration, Instant};
+use vlmfuse_testkit::pg::PgServer;
+use vlmfuse_testkit::rounds::sorted_reporters;
+
+fn pg() -> PgServer {
+    PgServer::start().unwrap_or_else(|e| panic!("PostgreSQL for the replica tests: {e}"))
+}
+
+/// A replica's flags: the shared database, waiting for the lease as a standby, a short lease
+/// timeout, and frequent snapshots.
+fn replica<'a>(url: &'a str, name: &'a str, reporters: &'a str) -> Vec<&'a str> {
+    vec![
+        "--reporters",
+        reporters,
+        "--store-url",
+        url,
+        "--store-standby",
+        "true",
+        "--store-replica-name",
+        name,
+        "--store-lease-timeout-s",
+        "3",
+        "--snapshot-every",
+        "37",
+    ]
+}
+
+/// The first of `standbys` to listen, with its index, within `timeout`.
+fn first_to_listen(standbys: &mut [Starting], timeout: Duration) -> (usize, String) {
+    let deadline = Instant::now() + timeout;
+    while Instant::now() < deadline {
+        for (i, s) in standbys.iter_mut().enumerate() {
+            if let Some(a) = s.listening() {
+                return (i, a);
+            }
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    panic!("no standby took over within {timeout:?}");
+}
+
+#[test]
+fn a_standby_takes_over_after_kill_9_and_continues_as_one_sqlite_server() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (all, _) = rounds(tmp.path());
+    let rounds = &all[..all.len().min(240)];
+    let reporters = sorted_reporters(rounds).join(",");
+
+    // The reference: one server on SQLite, uninterrupted.
+    let (dir_a, rounds_a, reporters_a) = (
+        tmp.path().join("sqlite"),
+        rounds.to_vec(),
+        reporters.clone(),
+    );
+    let reference = std::thread::spawn(move || {
+        let srv = Server::start(&dir_a, &["--reporters", &reporters_a], &[]);
+        let mut prog = Progress::default();
+        assert!(replay(&srv.addr, &rounds_a, &mut prog));
+        (prog.seen, srv.state())
+    });
+
+    let db = pg();
+    let url = db.create_db("replicas").unwrap();
+    let first = Server::start(
+        &tmp.path().join("r1"),
+        &replica(&url, "r1", &reporters),
+        &[],
+    );
+    let ready = first.get("/readyz").json();
+    assert_eq!(
+        ready["components"]["store"]["backend"], "postgres",
+        "{ready}"
+    );
+    assert_eq!(ready["components"]["store"]["role"], "writer", "{ready}");
+    assert_eq!(ready["components"]["store"]["replica"], "r1", "{ready}");
+    let mut standbys = vec![
+        Server::spawn(
+            &tmp.path().join("r2"),
+            &replica(&url, "r2", &reporters),
+            &[("RUST_LOG", "info")],
+        ),
+        Server::spawn(
+            &tmp.path().join("r3"),
+            &replica(&url, "r3", &reporters),
+            &[("RUST_LOG", "info")],
+        ),
+    ];
+    // One writer: while the first holds the lease, neither standby opens its port.
+    std::thread::sleep(Duration::from_secs(2));
+    for s in &mut standbys {
+        assert!(
+            s.listening().is_none(),
+            "a second writer started beside the first"
+        );
+        assert!(s.exited().is_none(), "a standby gave up waiting");
+    }
+
+    let mut prog = Progress::default();
+    let half = rounds.len() / 2;
+    assert!(replay(&first.addr, &rounds[..half], &mut prog));
+    // kill -9 of the writer with requests in flight, once the second half has begun to commit.
+    let (pid, addr) = (first.child.id().to_string(), first.addr.clone());
+    let killer = std::thread::spawn(move || {
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while Instant::now() < deadline {
+            let stored = client()
+                .get(format!("http://{addr}/v1/state"))
+                .send()
+                .ok()
+                .and_then(|r| r.json::<Value>().ok())
+                .and_then(|v| v["rounds"].as_u64())
+                .unwrap_or(0);
+            if stored as usize > half + 2 {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        Command::new("kill").args(["-9", &pid]).status().unwrap();
+        Instant::now()
+    });
+    let finished = replay(&first.addr, rounds, &mut prog);
+    let killed_at = killer.join().unwrap();
+    assert!(
+        !finished,
+        "the replay finished before the kill; kill earlier"
+    );
+    drop(first);
+    let acked = prog.seen.len();
+    assert!(acked > half, "nothing got through after the half");
+
+    let (i, addr) = first_to_listen(&mut standbys, Duration::from_secs(60));
+    let failover = killed_at.elapsed();
+    eprintln!(
+        "failover: a standby listened {:.2} s after kill -9 of the writer",
+        failover.as_secs_f64()
+    );
+    let taken = standbys.remove(i);
+    let name = if taken.data_dir.ends_with("r2") {
+        "r2"
+    } else {
+        "r3"
+    };
+    let srv = taken.into_server(addr);
+    let ready = srv.get("/readyz").json();
+    assert_eq!(ready["components"]["store"]["replica"], name, "{ready}");
+    assert!(standbys[0].listening().is_none(), "two standbys took over");
+    let log = std::fs::read_to_string(srv.data_dir.join("server.log")).unwrap();
+    assert!(log.contains("waiting for the writer lease"), "{log}");
+
+    // Every acknowledged feedback is stored once: its repeat is answered from the store.
+    let st = srv.state();
+    for (i, s) in prog.seen.iter().enumerate() {
+        let Some(fb) = &s.feedback else { continue };
+        let body = json!({"round_id": fb["round_id"], "labels": truth(&rounds[i]).unwrap()});
+        let r = try_post(&srv.addr, "/v1/feedback", &body).unwrap();
+        assert_eq!(r.status, 200, "round {i}");
+        assert_eq!(
+            r.header("x-vlmfuse-repeated"),
+            Some("true"),
+            "round {i} was not stored"
+        );
+        assert_eq!(
+            &r.json(),
+            fb,
+            "round {i}: the repeat differs from the acknowledged answer"
+        );
+    }
+    assert_eq!(
+        srv.state(),
+        st,
+        "repeating acknowledged feedback changed the state"
+    );
+    // The rest, through the new writer (the fuse in flight at the kill is retried under its
+    // request id, so a round committed but never acknowledged is not stored twice).
+    assert!(
+        replay(&srv.addr, rounds, &mut prog),
+        "the new writer failed"
+    );
+    let state = srv.state();
+
+    let (seen_ref, state_ref) = reference.join().unwrap();
+    assert_identical(&seen_ref, &prog.seen);
+    for key in [
+        "reputations",
+        "labelled_rounds",
+        "threshold",
+        "reporters",
+        "dim",
+        "rounds",
+    ] {
+        assert_eq!(
+            state_ref[key], state[key],
+            "final state {key} differs from SQLite's"
+        );
+    }
+}
+
+#[test]
+fn a_writer_whose_session_is_cut_stops_before_another_writes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (all, _) = rounds(tmp.path());
+    let rounds = &all[..20];
+    let reporters = sorted_reporters(rounds).join(",");
+    let db = pg();
+    let url = db.create_db("partition").unwrap();
+    let mut first = Server::start(
+        &tmp.path().join("r1"),
+        &replica(&url, "r1", &reporters),
+        &[],
+    );
+    let mut standby = Server::spawn(
+        &tmp.path().join("r2"),
+        &replica(&url, "r2", &reporters),
+        &[],
+    );
+    let mut prog = Progress::default();
+    assert!(replay(&first.addr, &rounds[..10], &mut prog));
+    assert!(
+        standby.listening().is_none(),
+        "a second writer started beside the first"
+    );
+
+    // The stand-in for a partition: the database ends the writer's session (only the lease
+    // holder's: the standby's waiting session stays).
+    let cut = db
+        .sql(
+            "partition",
+            "SELECT count(*) FROM (SELECT pg_terminate_backend(pid) FROM pg_locks \
+             WHERE locktype = 'advisory' AND granted) t",
+        )
+        .unwrap();
+    assert_eq!(cut, "1");
+    let t = Instant::now();
+    // The old writer stops: within its heartbeat it refuses writes and exits (75) for its
+    // supervisor to restart it as a standby.
+    let status = loop {
+        if let Some(s) = first.child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(10),
+            "the cut writer kept running"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    assert_eq!(status.code(), Some(75), "{status:?}");
+    let log = std::fs::read_to_string(first.data_dir.join("server.log")).unwrap();
+    assert!(log.contains("lost the writer lease"), "{log}");
+    first.kill9();
+    // The standby takes over and holds everything the old writer acknowledged.
+    let srv = standby.wait(Duration::from_secs(60));
+    let st = srv.state();
+    assert_eq!(st["rounds"].as_u64(), Some(10));
+    assert_eq!(
+        st["labelled_rounds"].as_u64(),
+        Some(prog.seen.iter().filter(|s| s.feedback.is_some()).count() as u64)
+    );
+    assert!(replay(&srv.addr, rounds, &mut prog));
+    assert_eq!(srv.state()["rounds"].as_u64(), Some(20));
+}
