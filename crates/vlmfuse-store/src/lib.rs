@@ -238,6 +238,14 @@ pub struct IdempotencyRecord {
     pub created_ms: i64,
 }
 
+/// Where an engine stands in the stored history: the rounds (by `seq`) and feedbacks (by
+/// labelling order) it holds.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Position {
+    pub rounds: u64,
+    pub labelled: u64,
+}
+
 /// What [`Store::load_engine`] found.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LoadReport {
@@ -786,9 +794,78 @@ impl Store {
         &self.path
     }
 
+    /// Whether this store writes (it holds the data directory's lock and, on PostgreSQL, the
+    /// writer lease), rather than reading beside a writer.
+    pub fn writes(&self) -> bool {
+        self._lock.is_some()
+    }
+
     /// On PostgreSQL, the writer lease this store holds (`None` for a reader and on SQLite).
     pub fn lease(&self) -> Option<&pg::LeaseHeld> {
         self.lease.as_ref()
+    }
+
+    /// The writer, on PostgreSQL: records where it takes writes (its HTTP address), for the
+    /// replicas that forward to it.
+    pub fn advertise(&self, address: &str) -> Result<(), StoreError> {
+        if self.lease.is_some() {
+            self.db.exec(
+                "UPDATE lease SET address = ?1 WHERE id = 1",
+                &[P::T(address)],
+            )?;
+        }
+        Ok(())
+    }
+
+    /// On PostgreSQL, the lease row: who writes and where (`None` before any writer).
+    pub fn lease_row(&self) -> Result<Option<pg::LeaseRow>, StoreError> {
+        if !self.db.is_pg() {
+            return Ok(None);
+        }
+        self.db
+            .query_opt(
+                "SELECT holder, since_ms, address FROM lease WHERE id = 1",
+                &[],
+            )?
+            .map(|r| {
+                Ok(pg::LeaseRow {
+                    holder: r.string(0)?,
+                    since_ms: r.i64(1)?,
+                    address: r.string(2)?,
+                })
+            })
+            .transpose()
+    }
+
+    /// Brings a replica's engine from `at` (the rounds and feedbacks it holds) to the latest
+    /// committed events, as a restart's tail replay does (the stored inferences and outcomes,
+    /// so the engine equals the writer's bit for bit), reading one consistent view of the
+    /// database. Returns where the engine then stands.
+    pub fn follow(&self, engine: &mut Engine, at: Position) -> Result<Position, StoreError> {
+        self.db.batch(if self.db.is_pg() {
+            "BEGIN ISOLATION LEVEL REPEATABLE READ READ ONLY"
+        } else {
+            "BEGIN"
+        })?;
+        let res = (|| {
+            let anchor = snapshot::Anchor {
+                rounds: at.rounds,
+                labelled: at.labelled,
+                last_round: None,
+                last_feedback: None,
+            };
+            let r = self.replay_into(engine, false, Some(&anchor))?;
+            let next = self
+                .db
+                .query_one("SELECT COALESCE(MAX(seq) + 1, 0) FROM rounds", &[])?
+                .u64(0)?;
+            Ok(Position {
+                rounds: next.max(at.rounds),
+                labelled: r.labelled,
+            })
+        })();
+        let _ = self.db.batch("COMMIT");
+        res
     }
 
     /// Whether this store is on PostgreSQL.
@@ -816,6 +893,8 @@ impl Store {
     pub fn check_identity(&mut self, id: &Identity) -> Result<(), StoreError> {
         let want = serde_json::to_string(id)?;
         match self.meta("identity")? {
+            // A reader has nothing to check yet: the writer records it.
+            None if !self.writes() => Ok(()),
             None => {
                 self.db.exec(
                     "INSERT INTO meta (key, value) VALUES ('identity', ?1)",
@@ -925,7 +1004,7 @@ impl Store {
                     .and_then(|r| self.check_state(engine, r.labelled).map(|()| r));
                 match tail {
                     Ok(r) => {
-                        if stored.is_none() {
+                        if stored.is_none() && self.writes() {
                             self.set_method(&method)?;
                         }
                         return Ok(LoadReport {
@@ -952,12 +1031,19 @@ impl Store {
                 }
             }
         }
+        if migrate && !self.writes() {
+            return Err(StoreError::Mismatch(format!(
+                "the database was written under method {:?} and this replica runs {method:?}; \
+                 only the writer rewrites it (start the writer with this configuration first)",
+                stored.as_deref().unwrap_or_default()
+            )));
+        }
         let replayed = self.replay_into(engine, migrate, None)?;
         if migrate {
             self.rewrite(&method, engine, &replayed)?;
         } else {
             self.check_state(engine, replayed.labelled)?;
-            if stored.is_none() {
+            if stored.is_none() && self.writes() {
                 self.set_method(&method)?;
             }
         }

@@ -94,7 +94,8 @@ CREATE TABLE IF NOT EXISTS state (
 CREATE TABLE IF NOT EXISTS lease (
     id       BIGINT PRIMARY KEY CHECK (id = 1),
     holder   TEXT NOT NULL,
-    since_ms BIGINT NOT NULL
+    since_ms BIGINT NOT NULL,
+    address  TEXT NOT NULL DEFAULT ''   -- where the other replicas send writes (http://host:port)
 );
 ";
 
@@ -321,12 +322,22 @@ pub(crate) fn open_writer(o: &PgOptions) -> Result<(Db, LeaseHeld), StoreError> 
         since_ms: crate::timestamp_ms(),
     };
     db.exec(
-        "INSERT INTO lease (id, holder, since_ms) VALUES (1, ?1, ?2)
-         ON CONFLICT(id) DO UPDATE SET holder = excluded.holder, since_ms = excluded.since_ms",
+        "INSERT INTO lease (id, holder, since_ms, address) VALUES (1, ?1, ?2, '')
+         ON CONFLICT(id) DO UPDATE SET holder = excluded.holder, since_ms = excluded.since_ms,
+                                       address = ''",
         &[P::T(&held.holder), P::I(held.since_ms)],
     )?;
     tracing::info!(db = %o.redacted(), holder = %held.holder, "holding the writer lease");
     Ok((db, held))
+}
+
+/// The lease row as the others read it: who writes, since when, and where it takes writes.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct LeaseRow {
+    pub holder: String,
+    pub since_ms: i64,
+    /// Empty until the writer listens.
+    pub address: String,
 }
 
 /// A read-only session beside the writer.

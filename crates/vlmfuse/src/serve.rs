@@ -96,6 +96,7 @@ pub fn run(args: ServeArgs) -> anyhow::Result<()> {
             .await
             .with_context(|| format!("cannot listen on {addr}"))?;
         let local = listener.local_addr()?;
+        state.service.set_address(local);
         // Tests and scripts read this line to learn the port when listening on port 0.
         println!("vlmfuse listening on http://{local}");
         tracing::info!("listening on http://{local}");

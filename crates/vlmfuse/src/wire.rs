@@ -61,7 +61,16 @@ pub struct FuseOut {
 
 #[derive(Serialize)]
 pub struct FuseBatchOut {
-    pub rounds: Vec<FuseOut>,
+    pub rounds: Vec<Fused>,
+}
+
+/// A fused round in an answer: fused here, or (a replica that does not hold the writer lease)
+/// by the writer, whose `/v1/fuse` answer is passed on as it came.
+#[derive(Serialize)]
+#[serde(untagged)]
+pub enum Fused {
+    Local(FuseOut),
+    Remote(serde_json::Value),
 }
 
 pub fn fuse_out(engine: &Engine, seq: u64, id: Option<String>, inf: &Inference) -> FuseOut {
@@ -255,6 +264,11 @@ pub struct StateOut {
     pub reporters: Ordered<ReporterStats>,
     /// Rounds fused and stored (labelled or not).
     pub rounds: u64,
+    /// Events the engine holds (stored rounds plus feedback events).
+    pub state_seq: u64,
+    /// On PostgreSQL: this replica's part, and how fresh its engine is.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub replica: Option<ReplicaOut>,
     /// Context dimension in force; null until the first round.
     pub dim: Option<usize>,
     /// `adaptive`'s pool: labelled and unlabelled entries (the latter bounded by
@@ -264,6 +278,15 @@ pub struct StateOut {
     /// Which predictor serves every label now, and (under `adaptive`) the candidates' recent
     /// scores it is chosen on.
     pub serving: ServingOut,
+}
+
+#[derive(Serialize)]
+pub struct ReplicaOut {
+    /// `writer` (holds the lease) or `follower` (forwards writes, reads its own copy).
+    pub role: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub writer: Option<String>,
+    pub synced_age_s: f64,
 }
 
 #[derive(Serialize)]
@@ -323,7 +346,7 @@ pub struct ClipOut {
 #[derive(Serialize)]
 pub struct InferClipOut {
     #[serde(flatten)]
-    pub fused: FuseOut,
+    pub fused: Fused,
     pub reporters: Ordered<ReporterOut>,
     /// Reporters left out of this round, with why.
     pub failed: Ordered<String>,
@@ -385,6 +408,8 @@ pub fn state_out(eng: &Engine, rounds: u64) -> StateOut {
             approximate_knn: eng.approximate_knn(),
         }),
         rounds,
+        state_seq: rounds + eng.labelled(),
+        replica: None,
         dim: eng.dim(),
         serving: ServingOut {
             predictor: serving_predictor(eng),

@@ -21,8 +21,8 @@ pub struct StoreSection {
     )]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub url: Option<String>,
-    /// Seconds a starting replica waits for the writer lease before it gives up with an error
-    /// naming the holder. A standby (`standby = true`) waits as long as it takes.
+    /// Seconds a starting replica waits for the writer lease before it follows the holder
+    /// instead. A standby (`standby = true`) waits as long as it takes.
     #[arg(
         long = "store-lease-wait-s",
         id = "store-lease-wait-s",
@@ -30,8 +30,10 @@ pub struct StoreSection {
         required = false
     )]
     pub lease_wait_s: f64,
-    /// Wait for the writer lease without limit: this replica takes over when the writer's
-    /// session ends (failover). Its HTTP port opens once it holds the lease.
+    /// Wait for the writer lease without limit before serving (active-passive): this replica
+    /// opens its port only once it writes. Off (the default), a replica that does not get the
+    /// lease follows the writer: it serves, forwards writes to it, and takes over when the
+    /// writer's session ends.
     #[arg(
         long = "store-standby",
         id = "store-standby",
@@ -67,17 +69,29 @@ pub struct StoreSection {
         required = false
     )]
     pub replica_name: String,
+    /// The URL the other replicas send this one's writes to while it holds the lease
+    /// (`http://vlmfuse-1:8080`); unset: the address it listens on (the host's name for a
+    /// wildcard address).
+    #[arg(
+        long = "store-advertise-url",
+        id = "store-advertise-url",
+        env = "VLMFUSE_STORE_ADVERTISE_URL",
+        required = false
+    )]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub advertise_url: Option<String>,
 }
 
 impl Default for StoreSection {
     fn default() -> Self {
         Self {
             url: None,
-            lease_wait_s: 5.0,
+            lease_wait_s: 1.0,
             standby: false,
             lease_timeout_s: 8.0,
             ca_file: None,
             replica_name: String::new(),
+            advertise_url: None,
         }
     }
 }

@@ -109,6 +109,9 @@ fn service_status(e: &ServiceError) -> StatusCode {
         S::Media(m) => media_status(m.class()),
         S::Embedder(_) | S::WriterStopped | S::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         S::Labeler(l) => labeler_status(l).0,
+        S::Forwarded { status, .. } => {
+            StatusCode::from_u16(*status).unwrap_or(StatusCode::BAD_GATEWAY)
+        }
     }
 }
 
@@ -131,6 +134,8 @@ fn service_kind(e: &ServiceError) -> &'static str {
         S::ReportersFailed(_) => "reporters_failed",
         S::Media(m) if m.is_client_error() => m.kind(),
         S::Labeler(l) => labeler_status(l).1,
+        // The writer's own kind is in the body, passed on as it came.
+        S::Forwarded { .. } => "forwarded",
         S::Media(_) | S::NotStored(_) | S::Embedder(_) | S::WriterStopped | S::Internal(_) => {
             "internal"
         }
@@ -220,6 +225,9 @@ impl From<MultipartError> for ApiError {
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
         let status = self.status();
+        if let ApiError::Service(ServiceError::Forwarded { body, .. }) = self {
+            return (status, axum::Json(body)).into_response();
+        }
         let kind = self.kind();
         metrics::counter!("vlmfuse_rejected_requests_total", "kind" => kind).increment(1);
         let (not_ready, failed) = match &self {

@@ -43,7 +43,18 @@ pub async fn fuse(
 ) -> Result<Response, ApiError> {
     let key = idempotency_header(&headers)?;
     let answer = st.service.fuse(body, key.as_deref()).await?;
-    Ok(answer_response(answer))
+    Ok(with_position(&st, answer_response(answer)).await)
+}
+
+/// A write's answer with `x-vlmfuse-position: rounds,labelled`, where the engine stands after
+/// it: a follower that forwarded the write waits until its own copy of the engine holds it.
+pub async fn with_position(st: &AppState, mut resp: Response) -> Response {
+    let p = st.service.position().await;
+    if let Ok(v) = HeaderValue::from_str(&format!("{},{}", p.rounds, p.labelled)) {
+        resp.headers_mut()
+            .insert(crate::service::replica::POSITION_HEADER, v);
+    }
+    resp
 }
 
 #[derive(Deserialize)]
@@ -82,7 +93,7 @@ pub async fn feedback(
         resp.headers_mut()
             .insert("x-vlmfuse-repeated", HeaderValue::from_static("true"));
     }
-    Ok(resp)
+    Ok(with_position(&st, resp).await)
 }
 
 /// `POST /v1/label`: `{"text": "..."}` or `{"text": ["...", ...]}` → labels with evidence.

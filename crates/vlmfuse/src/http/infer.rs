@@ -112,7 +112,7 @@ async fn infer_inner(State(st): State<AppState>, req: Request) -> Result<Respons
         .service
         .infer(uploads, header_key.as_deref(), request_id.as_deref())
         .await?;
-    Ok(super::handlers::answer_response(answer))
+    Ok(super::handlers::with_position(&st, super::handlers::answer_response(answer)).await)
 }
 
 /// A `signals` part: a vehicle-signal track, read into memory up to `max` bytes (413 past it).

@@ -75,6 +75,13 @@ pub enum ServiceError {
     WriterStopped,
     #[error("internal error: {0}")]
     Internal(String),
+    /// The writer's error answer to a write this replica forwarded (`replica`), passed on as
+    /// it came: its status and its `{"error", "kind", ...}` body.
+    #[error("{}", .body.get("error").and_then(|e| e.as_str()).unwrap_or("the writer refused the request"))]
+    Forwarded {
+        status: u16,
+        body: serde_json::Value,
+    },
 }
 
 fn fmt_failed(f: &[(String, String)]) -> String {

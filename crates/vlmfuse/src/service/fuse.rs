@@ -2,7 +2,7 @@
 
 use super::writer::{Cmd, FeedbackDone, Idem, Inserted};
 use super::{Service, ServiceError};
-use crate::wire::{feedback_out, fuse_out, FeedbackOut, FuseOut};
+use crate::wire::{feedback_out, fuse_out, FuseOut, Fused};
 use serde_json::Value;
 use sha2::{Digest, Sha256};
 use std::time::Instant;
@@ -20,7 +20,7 @@ pub struct Answer {
 
 /// Turns a request's numbered rounds into its JSON answer. The same function writes the answer
 /// a keyed request stores and the one it sends, so a retry gets exactly the first answer.
-pub type Render = Box<dyn FnOnce(Vec<FuseOut>) -> Value + Send>;
+pub type Render = Box<dyn FnOnce(Vec<Fused>) -> Value + Send>;
 
 /// A request's idempotency key and a hash of what it asked.
 pub struct IdemRequest {
@@ -66,6 +66,10 @@ pub fn fingerprint(parts: &[&[u8]]) -> String {
 }
 
 /// Sets each round's id from the first `seq`.
+fn local(outs: Vec<FuseOut>) -> Vec<Fused> {
+    outs.into_iter().map(Fused::Local).collect()
+}
+
 fn number(rounds: &mut [FuseOut], first: u64) {
     for (i, r) in rounds.iter_mut().enumerate() {
         r.round_id = round_id(first + i as u64);
@@ -90,6 +94,14 @@ impl Service {
     /// `POST /v1/fuse`: one docs/PAPER-METHOD.md §8 round (without truth) or `{"rounds": [...]}`, with an
     /// optional idempotency key (`key` from the header, or the body's `request_id`).
     pub async fn fuse(&self, mut body: Value, key: Option<&str>) -> Result<Answer, ServiceError> {
+        // A follower passes the request to the writer as it came (`replica`).
+        if let Some(f) = self.following() {
+            let fw = f.forward("/v1/fuse", &body, key).await?;
+            return Ok(Answer {
+                body: fw.body,
+                replayed: fw.replayed,
+            });
+        }
         let delay = self.hooks.fuse_delay();
         if !delay.is_zero() {
             tokio::time::sleep(delay).await;
@@ -134,6 +146,43 @@ impl Service {
         idem: Option<IdemRequest>,
         render: Render,
     ) -> Result<Answer, ServiceError> {
+        if let Some(f) = self.following() {
+            // A follower's fuse step is the writer's (`replica`): it infers against the one
+            // engine every event goes through, stores, and numbers; its answer per round goes
+            // into this request's own rendering. The key is the request's, under its route.
+            let n = records.len();
+            let rounds: Vec<Value> = records
+                .iter()
+                .map(|(rec, _, _)| {
+                    let mut r = serde_json::json!({"context": rec.context, "reports": rec.reports});
+                    if let Some(id) = &rec.id {
+                        r["id"] = id.clone().into();
+                    }
+                    r
+                })
+                .collect();
+            let key = idem.as_ref().map(|i| format!("{route}:{}", i.key));
+            let fw = f
+                .forward(
+                    "/v1/fuse",
+                    &serde_json::json!({ "rounds": rounds }),
+                    key.as_deref(),
+                )
+                .await?;
+            let outs = match fw.body.get("rounds").and_then(Value::as_array) {
+                Some(a) if a.len() == n => a.clone(),
+                _ => {
+                    return Err(ServiceError::Internal(format!(
+                        "the writer answered a fuse of {n} rounds with something else: {}",
+                        fw.body
+                    )))
+                }
+            };
+            return Ok(Answer {
+                body: render(outs.into_iter().map(Fused::Remote).collect()),
+                replayed: fw.replayed,
+            });
+        }
         let shared = self.shared.clone();
         let metrics = self.metrics.clone();
         let hold = self.hooks.fuse_hold();
@@ -211,7 +260,7 @@ impl Service {
                 fingerprint: i.fingerprint,
                 render: Box::new(move |first| {
                     number(&mut outs, first);
-                    render(outs)
+                    render(local(outs))
                 }),
             }
         });
@@ -242,7 +291,7 @@ impl Service {
                 );
                 number(&mut outs, first);
                 Ok(Answer {
-                    body: render(outs),
+                    body: render(local(outs)),
                     replayed: false,
                 })
             }
@@ -257,6 +306,10 @@ impl Service {
         route: &'static str,
         idem: &IdemRequest,
     ) -> Result<Option<Answer>, ServiceError> {
+        // A follower's keys are the writer's to check, when the fuse step arrives there.
+        if self.following().is_some() {
+            return Ok(None);
+        }
         let (tx, rx) = oneshot::channel();
         self.send(Cmd::LookupKey {
             key: idem.key.clone(),
@@ -281,7 +334,22 @@ impl Service {
         &self,
         round_id: String,
         given: FeedbackGiven,
-    ) -> Result<(FeedbackOut, bool), ServiceError> {
+    ) -> Result<(Value, bool), ServiceError> {
+        if let Some(f) = self.following() {
+            let mut body = serde_json::json!({ "round_id": round_id });
+            for (k, v) in [("labels", &given.labels), ("known", &given.known)] {
+                if let Some(v) = v {
+                    body[k] = serde_json::json!(v);
+                }
+            }
+            for (k, v) in [("source", &given.source), ("signals", &given.signals)] {
+                if let Some(v) = v {
+                    body[k] = v.clone().into();
+                }
+            }
+            let fw = f.forward("/v1/feedback", &body, None).await?;
+            return Ok((fw.body, fw.repeated));
+        }
         let (truth, source) = {
             let eng = self.shared.engine.read().await;
             given.encode(&eng)?
@@ -296,7 +364,25 @@ impl Service {
         round_id: String,
         truth: Vec<u8>,
         source: String,
-    ) -> Result<(FeedbackOut, bool), ServiceError> {
+    ) -> Result<(Value, bool), ServiceError> {
+        if let Some(f) = self.following() {
+            let (labels, known) = {
+                let eng = self.shared.engine.read().await;
+                let ont = eng.ontology();
+                let ids = |keep: &dyn Fn(u8) -> bool| -> Vec<String> {
+                    (0..truth.len())
+                        .filter(|&k| keep(truth[k]))
+                        .map(|k| ont.id(k).to_string())
+                        .collect()
+                };
+                (ids(&|t| t == 1), ids(&|t| t != vlmfuse_fusion::UNKNOWN))
+            };
+            let body = serde_json::json!({
+                "round_id": round_id, "labels": labels, "known": known, "source": source,
+            });
+            let fw = f.forward("/v1/feedback", &body, None).await?;
+            return Ok((fw.body, fw.repeated));
+        }
         self.feedback_with(round_id, truth, source, None).await
     }
 
@@ -306,7 +392,7 @@ impl Service {
         truth: Vec<u8>,
         source: String,
         signals: Option<&str>,
-    ) -> Result<(FeedbackOut, bool), ServiceError> {
+    ) -> Result<(Value, bool), ServiceError> {
         let derive = match signals {
             Some(text) => Some(Box::new((
                 super::annotate::parse_track(&self.cfg.annotate, text.as_bytes())?,
@@ -326,7 +412,9 @@ impl Service {
         })?;
         let done: FeedbackDone = rx.await.map_err(|_| ServiceError::WriterStopped)??;
         let eng = self.shared.engine.read().await;
-        Ok((feedback_out(&eng, &done), done.repeated))
+        let out = serde_json::to_value(feedback_out(&eng, &done))
+            .map_err(|e| ServiceError::Internal(format!("serialising a feedback answer: {e}")))?;
+        Ok((out, done.repeated))
     }
 }
 

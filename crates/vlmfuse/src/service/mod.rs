@@ -19,6 +19,7 @@ mod infer;
 mod label;
 pub mod pipeline;
 mod readiness;
+pub mod replica;
 mod review;
 mod thumbs;
 pub mod writer;
@@ -129,6 +130,9 @@ pub struct Service {
     _probes: Option<readiness::ProbeTask>,
     /// Which store this replica writes, and on PostgreSQL the lease it holds (for `/readyz`).
     store_info: StoreInfo,
+    /// On PostgreSQL, when another replica held the writer lease at the start: the follower
+    /// state (`replica`); it forwards writes until this replica takes the lease.
+    follower: Option<Arc<replica::Follower>>,
 }
 
 /// What `/readyz` says of the store beside its health.
@@ -213,15 +217,22 @@ impl Service {
         // that overlaps the previous process's last commit.
         //
         // On PostgreSQL this also takes the writer lease, waiting as `[store]` says (a standby:
-        // until the writer's session ends). Off the async threads: it may wait long.
-        // Every store call of the start runs off the async threads: a standby waits here for
+        // until the writer's session ends); a replica that does not get it follows the one that
+        // holds it (`replica`). Every store call of the start runs off the async threads: a standby waits here for
         // the lease, and the PostgreSQL client blocks on a runtime of its own.
         let cfg_b = cfg.clone();
-        let (store, engine, loaded, dash) = tokio::task::spawn_blocking(move || {
+        let (store, engine, loaded, dash, following) = tokio::task::spawn_blocking(move || {
             let cfg = cfg_b;
             let mut engine = engine;
             let location = cfg.store.location(&cfg.server.data_dir);
-            let mut store = Store::open_at(&location, STORE_LOCK_WAIT)?;
+            let (mut store, following) = match Store::open_at(&location, STORE_LOCK_WAIT) {
+                Ok(s) => (s, false),
+                Err(vlmfuse_store::StoreError::Leased { holder, .. }) if !cfg.store.standby => {
+                    tracing::info!(writer = %holder, "another replica holds the writer lease: following it");
+                    (Store::open_read_only_at(&location)?, true)
+                }
+                Err(e) => return Err(e.into()),
+            };
             let spool = cfg.spool_dir();
             let stale = clear_spool(&spool)
                 .with_context(|| format!("upload spool directory {}", spool.display()))?;
@@ -276,7 +287,7 @@ impl Service {
                 secs = seed_start.elapsed().as_secs_f64(),
                 "operator page seeded from the store"
             );
-            anyhow::Ok((store, engine, loaded, dash))
+            anyhow::Ok((store, engine, loaded, dash, following))
         })
         .await
         .context("opening the store")??;
@@ -288,6 +299,7 @@ impl Service {
             broken: AtomicBool::new(false),
             broken_reason: Mutex::new(None),
             dashboard: Mutex::new(dash),
+            address: std::sync::OnceLock::new(),
         });
 
         let start = Instant::now();
@@ -339,23 +351,47 @@ impl Service {
                     .set(l.since_ms as f64 / 1000.0);
             });
         }
-        let (tx, writer) = writer::spawn(
-            store,
-            shared.clone(),
-            metrics.clone(),
-            Duration::from_secs_f64(cfg.limits.idempotency_ttl_s),
-            writer::SnapshotPolicy {
-                every: cfg.server.snapshot_every,
-                loaded: loaded
-                    .snapshot
-                    .as_ref()
-                    .map_or((0, 0), |u| (u.anchor.rounds, u.anchor.labelled)),
-                interval: (cfg.server.snapshot_interval_s > 0.0)
-                    .then(|| Duration::from_secs_f64(cfg.server.snapshot_interval_s)),
-                keep: cfg.server.snapshot_keep,
-            },
-        )
-        .context("writer thread")?;
+        let snapshots = writer::SnapshotPolicy {
+            every: cfg.server.snapshot_every,
+            loaded: loaded
+                .snapshot
+                .as_ref()
+                .map_or((0, 0), |u| (u.anchor.rounds, u.anchor.labelled)),
+            interval: (cfg.server.snapshot_interval_s > 0.0)
+                .then(|| Duration::from_secs_f64(cfg.server.snapshot_interval_s)),
+            keep: cfg.server.snapshot_keep,
+        };
+        let key_ttl = Duration::from_secs_f64(cfg.limits.idempotency_ttl_s);
+        let (tx, writer, follower) = if following {
+            let follower = Arc::new(replica::Follower::new(
+                vlmfuse_store::Position {
+                    rounds: loaded.next_seq,
+                    labelled: loaded.labelled,
+                },
+                cfg.server.api_key.clone().filter(|k| !k.is_empty()),
+                Duration::from_secs_f64(cfg.limits.request_timeout_s),
+            ));
+            let (tx, rx) = std::sync::mpsc::channel();
+            let handle = replica::spawn(
+                store,
+                follower.clone(),
+                shared.clone(),
+                rx,
+                replica::Promotion {
+                    location: cfg.store.location(&cfg.server.data_dir),
+                    metrics: metrics.clone(),
+                    key_ttl,
+                    snapshots,
+                },
+            )
+            .context("follow thread")?;
+            (tx, handle, Some(follower))
+        } else {
+            let (tx, handle) =
+                writer::spawn(store, shared.clone(), metrics.clone(), key_ttl, snapshots)
+                    .context("writer thread")?;
+            (tx, handle, None)
+        };
         let pipeline = Arc::new(pipeline);
         let (health, probes) = readiness::start_probes(
             &pipeline,
@@ -373,6 +409,7 @@ impl Service {
                 reader: Arc::new(Mutex::new(None)),
                 _probes: probes,
                 store_info,
+                follower,
             },
             writer,
         ))
@@ -380,6 +417,38 @@ impl Service {
 
     pub fn config(&self) -> &Config {
         &self.cfg
+    }
+
+    /// The follower state while this replica forwards its writes (`None` once it writes).
+    pub(crate) fn following(&self) -> Option<&Arc<replica::Follower>> {
+        self.follower.as_ref().filter(|f| f.following())
+    }
+
+    /// Where this service takes requests, once it listens: a writer on PostgreSQL names it
+    /// in the lease row (`[store] advertise_url` overrides it).
+    pub fn set_address(&self, listening: std::net::SocketAddr) {
+        let url = match &self.cfg.store.advertise_url {
+            Some(u) if !u.is_empty() => u.clone(),
+            // A wildcard address is no address to send to: the host's name instead.
+            _ if listening.ip().is_unspecified() => {
+                let host = std::fs::read_to_string("/proc/sys/kernel/hostname")
+                    .map(|h| h.trim().to_string())
+                    .unwrap_or_else(|_| "localhost".into());
+                format!("http://{host}:{}", listening.port())
+            }
+            _ => format!("http://{listening}"),
+        };
+        let _ = self.shared.address.set(url);
+    }
+
+    /// Where the engine stands in the stored history (`rounds`, `labelled`): what a writer's
+    /// answer to a write says in `x-vlmfuse-position`, and what a follower waits for.
+    pub async fn position(&self) -> vlmfuse_store::Position {
+        let labelled = self.shared.engine.read().await.labelled();
+        vlmfuse_store::Position {
+            rounds: self.shared.rounds.load(Ordering::SeqCst),
+            labelled,
+        }
     }
 
     pub fn metrics(&self) -> &Metrics {
@@ -408,7 +477,26 @@ impl Service {
     /// `GET /v1/state`.
     pub async fn state(&self) -> StateOut {
         let eng = self.shared.engine.read().await;
-        state_out(&eng, self.shared.rounds.load(Ordering::SeqCst))
+        let mut out = state_out(&eng, self.shared.rounds.load(Ordering::SeqCst));
+        out.replica = match &self.follower {
+            Some(f) if f.following() => Some(crate::wire::ReplicaOut {
+                role: "follower",
+                writer: f.writer().map(|(name, _)| name),
+                synced_age_s: f.synced_age_s(),
+            }),
+            Some(_) => Some(crate::wire::ReplicaOut {
+                role: "writer",
+                writer: None,
+                synced_age_s: 0.0,
+            }),
+            None if self.store_info.backend == "postgres" => Some(crate::wire::ReplicaOut {
+                role: "writer",
+                writer: None,
+                synced_age_s: 0.0,
+            }),
+            None => None,
+        };
+        out
     }
 
     /// `GET /v1/ontology`.

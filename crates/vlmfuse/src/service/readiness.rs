@@ -231,6 +231,16 @@ impl Service {
             store["replica"] = l.holder.clone().into();
             store["lease_age_s"] =
                 (((vlmfuse_store::timestamp_ms() - l.since_ms).max(0)) as f64 / 1000.0).into();
+        } else if let Some(f) = &self.follower {
+            // It follows the writer (or took over from it: the lease age is then unknown here).
+            store["role"] = if f.following() { "follower" } else { "writer" }.into();
+            if let Some((name, _)) = f.writer().filter(|_| f.following()) {
+                store["writer"] = name.into();
+            }
+            store["replication_lag_s"] = f.synced_age_s().into();
+            if !self.cfg.store.replica_name.is_empty() {
+                store["replica"] = self.cfg.store.replica_name.clone().into();
+            }
         }
         components.insert("store".into(), store);
 

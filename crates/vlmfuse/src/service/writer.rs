@@ -202,6 +202,9 @@ pub struct Shared {
     pub dashboard: Mutex<super::dashboard::Dashboard>,
     /// Reporter names in configured order (the dashboard's indices).
     pub reporter_names: Vec<String>,
+    /// Where this service takes requests (`http://host:port`), once it listens: what a writer
+    /// on PostgreSQL puts in the lease row for the followers.
+    pub address: std::sync::OnceLock<String>,
 }
 
 impl Shared {
@@ -437,7 +440,7 @@ impl Snapshots {
 }
 
 pub fn spawn(
-    mut store: Store,
+    store: Store,
     shared: Arc<Shared>,
     metrics: Metrics,
     key_ttl: std::time::Duration,
@@ -446,26 +449,38 @@ pub fn spawn(
     let (tx, rx) = mpsc::channel::<Cmd>();
     let handle = std::thread::Builder::new()
         .name("vlmfuse-writer".into())
-        .spawn(move || {
-            let res = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                let mut keys = Keys {
-                    ttl_ms: i64::try_from(key_ttl.as_millis()).unwrap_or(i64::MAX),
-                    last_prune: None,
-                };
-                metrics.scope(|| {
-                    let mut snaps = Snapshots::new(snapshots, metrics.clone());
-                    run(&mut store, &shared, &mut keys, &mut snaps, rx);
-                    // The queue is drained: a snapshot of the final state makes the next start
-                    // replay nothing.
-                    snaps.maybe(&store, &shared, true);
-                })
-            }));
-            match res {
-                Ok(()) => tracing::info!("writer stopped: every queued write is committed"),
-                Err(_) => shared.mark_broken("the writer thread panicked".into()),
-            }
-        })?;
+        .spawn(move || serve_writes(store, shared, metrics, key_ttl, snapshots, rx))?;
     Ok((tx, handle))
+}
+
+/// The writer loop on the current thread until the queue closes (every handle to the service
+/// dropped), then a last snapshot. [`spawn`]'s thread runs it, and a follower's thread once it
+/// takes the writer lease (`replica`).
+pub fn serve_writes(
+    mut store: Store,
+    shared: Arc<Shared>,
+    metrics: Metrics,
+    key_ttl: std::time::Duration,
+    snapshots: SnapshotPolicy,
+    rx: mpsc::Receiver<Cmd>,
+) {
+    let res = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        let mut keys = Keys {
+            ttl_ms: i64::try_from(key_ttl.as_millis()).unwrap_or(i64::MAX),
+            last_prune: None,
+        };
+        metrics.scope(|| {
+            let mut snaps = Snapshots::new(snapshots, metrics.clone());
+            run(&mut store, &shared, &mut keys, &mut snaps, rx);
+            // The queue is drained: a snapshot of the final state makes the next start
+            // replay nothing.
+            snaps.maybe(&store, &shared, true);
+        })
+    }));
+    match res {
+        Ok(()) => tracing::info!("writer stopped: every queued write is committed"),
+        Err(_) => shared.mark_broken("the writer thread panicked".into()),
+    }
 }
 
 fn run(
@@ -480,7 +495,10 @@ fn run(
     loop {
         // Wake at least once a second while idle, so a snapshot due by time is written even
         // when no request comes, and the writer lease's session sees a sign of life.
-        let first = match rx.recv_timeout(std::time::Duration::from_secs(1)) {
+        // A writer on PostgreSQL that has not yet named its address in the lease row looks
+        // again soon: followers forward nothing until it has.
+        let wait = if lease.pending() { 50 } else { 1000 };
+        let first = match rx.recv_timeout(std::time::Duration::from_millis(wait)) {
             Ok(c) => c,
             Err(mpsc::RecvTimeoutError::Timeout) => {
                 lease.check(store, shared);
@@ -544,6 +562,7 @@ fn run(
 struct Lease {
     on: bool,
     last: Instant,
+    advertised: bool,
 }
 
 /// The exit status of a writer that lost its lease (EX_TEMPFAIL): its supervisor restarts it,
@@ -555,14 +574,35 @@ impl Lease {
         Lease {
             on: store.is_postgres(),
             last: Instant::now(),
+            advertised: false,
         }
+    }
+
+    /// Whether the lease row does not name this writer's address yet.
+    fn pending(&self) -> bool {
+        self.on && !self.advertised
     }
 
     /// At most once a second: a round trip on the lease's session. When it fails the writes
     /// are refused and the process exits ([`LEASE_LOST_EXIT`]): nothing it acknowledged is
     /// lost (each acknowledgement followed its commit), and it cannot commit anything more.
     fn check(&mut self, store: &Store, shared: &Shared) {
-        if !self.on || self.last.elapsed() < std::time::Duration::from_secs(1) {
+        if !self.on {
+            return;
+        }
+        // Once the service listens, the lease row says where: the followers forward there.
+        if !self.advertised {
+            if let Some(addr) = shared.address.get() {
+                match store.advertise(addr) {
+                    Ok(()) => {
+                        tracing::info!(address = %addr, "the lease row names this writer's address");
+                        self.advertised = true;
+                    }
+                    Err(e) => tracing::warn!(error = %e, "cannot write this writer's address"),
+                }
+            }
+        }
+        if self.last.elapsed() < std::time::Duration::from_secs(1) {
             return;
         }
         self.last = Instant::now();

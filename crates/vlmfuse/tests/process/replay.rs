@@ -88,6 +88,11 @@ pub(crate) fn replay(addr: &str, rounds: &[Value], prog: &mut Progress) -> bool 
                 let Ok(resp) = try_post(addr, "/v1/fuse", &body) else {
                     return false;
                 };
+                // Unavailable (a replica whose writer is gone, until another takes over): as
+                // if it had not answered; the retry repeats the request id.
+                if resp.status == 503 {
+                    return false;
+                }
                 assert_eq!(
                     resp.status,
                     200,
@@ -108,6 +113,10 @@ pub(crate) fn replay(addr: &str, rounds: &[Value], prog: &mut Progress) -> bool 
                 prog.pending = Some((round_id, fuse));
                 return false;
             };
+            if resp.status == 503 {
+                prog.pending = Some((round_id, fuse));
+                return false;
+            }
             assert_eq!(
                 resp.status,
                 200,

@@ -267,3 +267,146 @@ fn a_writer_whose_session_is_cut_stops_before_another_writes() {
     assert!(replay(&srv.addr, rounds, &mut prog));
     assert_eq!(srv.state()["rounds"].as_u64(), Some(20));
 }
+
+/// A replica's flags as a follower: it serves and forwards while another writes.
+fn follower<'a>(url: &'a str, name: &'a str, reporters: &'a str) -> Vec<&'a str> {
+    let mut a = replica(url, name, reporters);
+    a[5] = "false";
+    a.extend(["--store-lease-wait-s", "0"]);
+    a
+}
+
+#[test]
+fn followers_serve_forward_and_one_takes_over_as_one_sqlite_server_would() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (all, _) = rounds(tmp.path());
+    let rounds = &all[..all.len().min(240)];
+    let reporters = sorted_reporters(rounds).join(",");
+    let (dir_a, rounds_a, reporters_a) = (
+        tmp.path().join("sqlite"),
+        rounds.to_vec(),
+        reporters.clone(),
+    );
+    let reference = std::thread::spawn(move || {
+        let srv = Server::start(&dir_a, &["--reporters", &reporters_a], &[]);
+        let mut prog = Progress::default();
+        assert!(replay(&srv.addr, &rounds_a, &mut prog));
+        (prog.seen, srv.state())
+    });
+
+    let db = pg();
+    let url = db.create_db("followers").unwrap();
+    let writer = Server::start(
+        &tmp.path().join("r1"),
+        &follower(&url, "r1", &reporters),
+        &[],
+    );
+    let f2 = Server::start(
+        &tmp.path().join("r2"),
+        &follower(&url, "r2", &reporters),
+        &[],
+    );
+    let f3 = Server::start(
+        &tmp.path().join("r3"),
+        &follower(&url, "r3", &reporters),
+        &[],
+    );
+    for (s, role) in [(&writer, "writer"), (&f2, "follower"), (&f3, "follower")] {
+        let ready = s.get("/readyz").json();
+        assert_eq!(ready["components"]["store"]["role"], role, "{ready}");
+    }
+    assert_eq!(
+        f2.get("/readyz").json()["components"]["store"]["writer"],
+        "r1"
+    );
+
+    // One client, round by round across the three replicas; the writer is killed mid-way.
+    let mut addrs = vec![writer.addr.clone(), f2.addr.clone(), f3.addr.clone()];
+    let half = rounds.len() / 2;
+    let (pid, waddr) = (writer.child.id().to_string(), writer.addr.clone());
+    let killed = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let killed_k = killed.clone();
+    let killer = std::thread::spawn(move || {
+        let deadline = Instant::now() + Duration::from_secs(120);
+        while Instant::now() < deadline {
+            let stored = client()
+                .get(format!("http://{waddr}/v1/state"))
+                .send()
+                .ok()
+                .and_then(|r| r.json::<Value>().ok())
+                .and_then(|v| v["rounds"].as_u64())
+                .unwrap_or(0);
+            if stored as usize > half + 2 {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        Command::new("kill").args(["-9", &pid]).status().unwrap();
+        killed_k.store(true, std::sync::atomic::Ordering::SeqCst);
+        Instant::now()
+    });
+    let mut prog = Progress::default();
+    let mut down_since: Option<Instant> = None;
+    let mut longest_gap = Duration::ZERO;
+    let deadline = Instant::now() + Duration::from_secs(300);
+    while prog.seen.len() < rounds.len() {
+        assert!(
+            Instant::now() < deadline,
+            "the replicas stopped making progress"
+        );
+        let k = prog.seen.len();
+        if killed.load(std::sync::atomic::Ordering::SeqCst) && addrs[0] == writer.addr {
+            addrs.remove(0);
+        }
+        let addr = addrs[k % addrs.len()].clone();
+        if replay(&addr, &rounds[..k + 1], &mut prog) {
+            if let Some(t) = down_since.take() {
+                longest_gap = longest_gap.max(t.elapsed());
+            }
+        } else {
+            down_since.get_or_insert_with(Instant::now);
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+    let killed_at = killer.join().unwrap();
+    assert!(killed.load(std::sync::atomic::Ordering::SeqCst));
+    eprintln!(
+        "followers: writes were unavailable for {:.2} s around kill -9 of the writer ({:.1} s ago)",
+        longest_gap.as_secs_f64(),
+        killed_at.elapsed().as_secs_f64()
+    );
+    // One of the followers writes now; the other forwards to it.
+    let roles: Vec<Value> = [&f2, &f3]
+        .iter()
+        .map(|s| s.get("/readyz").json()["components"]["store"]["role"].clone())
+        .collect();
+    assert!(
+        roles.contains(&json!("writer")) && roles.contains(&json!("follower")),
+        "{roles:?}"
+    );
+
+    let (seen_ref, state_ref) = reference.join().unwrap();
+    assert_identical(&seen_ref, &prog.seen);
+    // Both serve the same state once the follower has read the last events.
+    for s in [&f2, &f3] {
+        let t = Instant::now();
+        let st = loop {
+            let st = s.state();
+            if st["state_seq"] == state_ref["state_seq"] || t.elapsed() > Duration::from_secs(10) {
+                break st;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        for key in [
+            "reputations",
+            "labelled_rounds",
+            "threshold",
+            "reporters",
+            "dim",
+            "rounds",
+            "state_seq",
+        ] {
+            assert_eq!(state_ref[key], st[key], "{key} differs from SQLite's");
+        }
+    }
+}
