@@ -3,6 +3,11 @@
 //! a durable group-committed insert) over the HTTP stack alone.
 //!
 //! `cargo bench -p vlmfuse --bench http [-- BANK SECONDS CLIENTS]` (defaults 10000 5 16).
+//!
+//! `-- --replicas [BANK SECONDS CLIENTS]`: `/v1/fuse` throughput and latency on the embedded
+//! SQLite store, on PostgreSQL with one replica, and with three (one writer, two followers that
+//! forward to it; the load spread over all three), in one run on a PostgreSQL server the bench
+//! starts on a loopback port (docs/ARCHITECTURE.md, "Replicas").
 //! The bank is written straight into the database (the rebuild on start is what a restarted
 //! service does), so the run does not spend minutes on 10k fsynced feedbacks first.
 
@@ -13,7 +18,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use vlmfuse_fusion::{Engine, FusionConfig, Ontology, RoundRecord};
-use vlmfuse_store::{Identity, NewRound, Store, StoredFeedback};
+use vlmfuse_store::{Identity, Location, NewRound, Store, StoredFeedback};
 use vlmfuse_testkit::rng::Lcg as Rng;
 
 const D: usize = 128;
@@ -41,11 +46,11 @@ fn record(rng: &mut Rng, ont: &Ontology) -> RoundRecord {
     }
 }
 
-fn prefill(dir: &std::path::Path, bank: u64) {
+fn prefill(at: &Location, bank: u64) {
     let ont = Ontology::paper();
     let reporters: Vec<String> = REPORTERS.map(String::from).to_vec();
     let engine = Engine::new(FusionConfig::default(), ont.clone(), reporters.clone()).unwrap();
-    let mut store = Store::open(dir).unwrap();
+    let mut store = Store::open_at(at, Duration::ZERO).unwrap();
     store
         .check_identity(&Identity {
             reporters,
@@ -162,10 +167,13 @@ fn main() {
     let secs: f64 = args.get(1).and_then(|a| a.parse().ok()).unwrap_or(5.0);
     let clients: usize = args.get(2).and_then(|a| a.parse().ok()).unwrap_or(16);
 
+    if std::env::args().any(|a| a == "--replicas") {
+        return replicas(bank, secs, clients);
+    }
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
     let t = Instant::now();
-    prefill(&data, bank);
+    prefill(&Location::Sqlite { dir: data.clone() }, bank);
     eprintln!(
         "prefilled {bank} labelled rounds in {:.1} s",
         t.elapsed().as_secs_f64()
@@ -222,4 +230,114 @@ fn main() {
         .args(["-TERM", &child.id().to_string()])
         .status();
     let _ = child.wait();
+}
+
+/// `vlmfuse serve` on a loopback port with `args`; the child and its address.
+fn serve(data: &std::path::Path, args: &[&str]) -> (std::process::Child, String) {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_vlmfuse"))
+        .args(["serve", "--listen", "127.0.0.1:0", "--data-dir"])
+        .arg(data)
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut out = BufReader::new(child.stdout.take().unwrap());
+    let mut line = String::new();
+    out.read_line(&mut line).unwrap();
+    let addr = line
+        .trim()
+        .strip_prefix("vlmfuse listening on http://")
+        .expect("listening line")
+        .to_string();
+    (child, addr)
+}
+
+/// `/v1/fuse` on SQLite, on PostgreSQL with one replica and with three, in one run.
+fn replicas(bank: u64, secs: f64, clients: usize) {
+    let pg = vlmfuse_testkit::pg::PgServer::start().expect("PostgreSQL for the bench");
+    let tmp = tempfile::tempdir().unwrap();
+    let ont = Ontology::paper();
+    let mut rng = Rng(7);
+    let bodies: Vec<Vec<u8>> = (0..512)
+        .map(|_| {
+            let mut rec = record(&mut rng, &ont);
+            rec.truth = None;
+            serde_json::to_vec(&rec).unwrap()
+        })
+        .collect();
+    println!("/v1/fuse, bank {bank}, d {D}, {clients} keep-alive clients, {secs} s each");
+    println!("| store | replicas | req/s | p50 ms | p99 ms |");
+    println!("|---|---|---|---|---|");
+    for (store, n) in [("sqlite", 1usize), ("postgres", 1), ("postgres", 3)] {
+        let url = match store {
+            "sqlite" => None,
+            _ => Some(pg.create_db(&format!("bench_{n}")).unwrap()),
+        };
+        let dirs: Vec<_> = (0..n)
+            .map(|i| tmp.path().join(format!("{store}-{n}-{i}")))
+            .collect();
+        prefill(
+            &match &url {
+                None => Location::Sqlite {
+                    dir: dirs[0].clone(),
+                },
+                Some(u) => {
+                    let mut o = vlmfuse_store::pg::PgOptions::new(u.clone(), &dirs[0]);
+                    o.lease_wait = Duration::ZERO;
+                    Location::Postgres(o)
+                }
+            },
+            bank,
+        );
+        let mut children = Vec::new();
+        let mut addrs = Vec::new();
+        for (i, d) in dirs.iter().enumerate() {
+            let name = format!("r{i}");
+            let mut args = vec![];
+            if let Some(u) = &url {
+                args.extend(["--store-url", u.as_str(), "--store-lease-wait-s", "0"]);
+                args.extend(["--store-replica-name", name.as_str()]);
+            }
+            let (c, a) = serve(d, &args);
+            children.push(c);
+            addrs.push(a);
+        }
+        // The followers learn the writer's address from the lease row within a moment.
+        let t = Instant::now();
+        let client = reqwest::blocking::Client::builder()
+            .no_proxy()
+            .build()
+            .unwrap();
+        for a in &addrs[1..] {
+            while t.elapsed() < Duration::from_secs(30) {
+                let v: serde_json::Value = client
+                    .get(format!("http://{a}/v1/state"))
+                    .send()
+                    .and_then(|r| r.json())
+                    .unwrap_or_default();
+                if v["replica"]["writer"].is_string() {
+                    break;
+                }
+                std::thread::sleep(Duration::from_millis(50));
+            }
+            std::thread::sleep(Duration::from_millis(500));
+        }
+        let reqs: Vec<Req> = bodies
+            .iter()
+            .enumerate()
+            .map(|(i, b)| Req::Post(format!("http://{}/v1/fuse", addrs[i % n]), b.clone()))
+            .collect();
+        let (rps, lat) = load(Arc::new(reqs), clients, secs);
+        println!(
+            "| {store} | {n} | {rps:.0} | {:.2} | {:.2} |",
+            lat[0], lat[1]
+        );
+        for mut c in children {
+            let _ = Command::new("kill")
+                .args(["-TERM", &c.id().to_string()])
+                .status();
+            let _ = c.wait();
+        }
+    }
 }
