@@ -257,6 +257,7 @@ pub async fn metrics(State(st): State<AppState>) -> Response {
         header::CONTENT_TYPE,
         HeaderValue::from_static("text/plain; version=0.0.4; charset=utf-8"),
     );
+    st.service.publish_replica_gauges();
     (h, st.service.metrics().render()).into_response()
 }
 

@@ -424,6 +424,33 @@ impl Service {
         self.follower.as_ref().filter(|f| f.following())
     }
 
+    /// On PostgreSQL, at each scrape of `/metrics`: `vlmfuse_replica_role{role}` (1 for this
+    /// replica's), `vlmfuse_replica_lag_seconds` (a follower: since its engine last read the
+    /// committed events; 0 on the writer) and `vlmfuse_store_lease_age_seconds` (the writer).
+    pub fn publish_replica_gauges(&self) {
+        if self.store_info.backend != "postgres" {
+            return;
+        }
+        let following = self.following();
+        let role = if following.is_some() {
+            "follower"
+        } else {
+            "writer"
+        };
+        let lag = following.map_or(0.0, |f| f.synced_age_s());
+        self.metrics.scope(|| {
+            for r in ["writer", "follower"] {
+                metrics::gauge!("vlmfuse_replica_role", "role" => r)
+                    .set(f64::from(u8::from(r == role)));
+            }
+            metrics::gauge!("vlmfuse_replica_lag_seconds").set(lag);
+            if let Some(l) = &self.store_info.lease {
+                metrics::gauge!("vlmfuse_store_lease_age_seconds")
+                    .set((vlmfuse_store::timestamp_ms() - l.since_ms).max(0) as f64 / 1000.0);
+            }
+        });
+    }
+
     /// Where this service takes requests, once it listens: a writer on PostgreSQL names it
     /// in the lease row (`[store] advertise_url` overrides it).
     pub fn set_address(&self, listening: std::net::SocketAddr) {

@@ -302,7 +302,6 @@ fn catch_up(reader: &Store, follower: &Follower, shared: &Shared) -> Result<(), 
         let eng = shared.engine.blocking_read();
         writer::publish_gauges(&eng);
     }
-    metrics::gauge!("vlmfuse_replica_lag_seconds").set(0.0);
     Ok(())
 }
 

@@ -410,3 +410,180 @@ fn followers_serve_forward_and_one_takes_over_as_one_sqlite_server_would() {
         }
     }
 }
+
+/// POSTs until an answer that is not "unavailable" comes, rotating over `addrs` (skipping the
+/// ones that do not answer); the answer.
+fn post_until_served(addrs: &[String], start: usize, path: &str, body: &Value) -> Resp {
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let mut i = start;
+    loop {
+        assert!(Instant::now() < deadline, "no replica served {path} {body}");
+        if let Ok(r) = try_post(&addrs[i % addrs.len()], path, body) {
+            if r.status != 503 {
+                return r;
+            }
+        }
+        i += 1;
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn a_burst_from_several_clients_survives_kill_9_of_the_writer() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (all, _) = rounds(tmp.path());
+    let rounds: Vec<Value> = all[..all.len().min(150)].to_vec();
+    let reporters = sorted_reporters(&rounds).join(",");
+    let db = pg();
+    let url = db.create_db("burst").unwrap();
+    let writer = Server::start(
+        &tmp.path().join("r1"),
+        &follower(&url, "r1", &reporters),
+        &[],
+    );
+    let f2 = Server::start(
+        &tmp.path().join("r2"),
+        &follower(&url, "r2", &reporters),
+        &[],
+    );
+    let f3 = Server::start(
+        &tmp.path().join("r3"),
+        &follower(&url, "r3", &reporters),
+        &[],
+    );
+    let addrs = vec![writer.addr.clone(), f2.addr.clone(), f3.addr.clone()];
+
+    // Three clients, each its own third of the rounds through its own replica, fuse then
+    // feedback, every fuse under a request id; the writer is killed once 40 rounds are in.
+    let (pid, waddr) = (writer.child.id().to_string(), writer.addr.clone());
+    let killer = std::thread::spawn(move || {
+        let deadline = Instant::now() + Duration::from_secs(120);
+        let mut stored = 0;
+        while Instant::now() < deadline {
+            stored = client()
+                .get(format!("http://{waddr}/v1/state"))
+                .send()
+                .ok()
+                .and_then(|r| r.json::<Value>().ok())
+                .and_then(|v| v["rounds"].as_u64())
+                .unwrap_or(0);
+            if stored >= 40 {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        Command::new("kill").args(["-9", &pid]).status().unwrap();
+        stored
+    });
+    let clients: Vec<_> = (0..3)
+        .map(|c| {
+            let (rounds, addrs) = (rounds.clone(), addrs.clone());
+            std::thread::spawn(move || {
+                let mut acked = Vec::new();
+                for (i, r) in rounds.iter().enumerate().filter(|(i, _)| i % 3 == c) {
+                    let mut body = r.clone();
+                    let truth = body.as_object_mut().unwrap().remove("truth");
+                    body["request_id"] = json!(format!("burst-{i}"));
+                    let fused = post_until_served(&addrs, c, "/v1/fuse", &body);
+                    assert_eq!(
+                        fused.status,
+                        200,
+                        "round {i}: {}",
+                        String::from_utf8_lossy(&fused.body)
+                    );
+                    let round_id = fused.json()["round_id"].as_str().unwrap().to_string();
+                    let fb = truth.filter(|t| !t.is_null()).map(|t| {
+                        let fb = json!({"round_id": round_id, "labels": t});
+                        let r = post_until_served(&addrs, c, "/v1/feedback", &fb);
+                        assert_eq!(
+                            r.status,
+                            200,
+                            "round {i}: {}",
+                            String::from_utf8_lossy(&r.body)
+                        );
+                        (fb, r.json())
+                    });
+                    acked.push((i, round_id, fb));
+                }
+                acked
+            })
+        })
+        .collect();
+    let acked: Vec<_> = clients
+        .into_iter()
+        .flat_map(|c| c.join().unwrap())
+        .collect();
+    let at_kill = killer.join().unwrap();
+    assert!(
+        (40..100).contains(&at_kill),
+        "the kill came at {at_kill} rounds, not mid-burst"
+    );
+    drop(writer);
+
+    // Every round once: as many rows as rounds sent, each acknowledged id distinct.
+    assert_eq!(acked.len(), rounds.len());
+    let stored = db.sql("burst", "SELECT count(*) FROM rounds").unwrap();
+    assert_eq!(
+        stored,
+        rounds.len().to_string(),
+        "a retried fuse was stored twice, or one was lost"
+    );
+    let mut ids: Vec<&String> = acked.iter().map(|(_, id, _)| id).collect();
+    ids.sort();
+    ids.dedup();
+    assert_eq!(ids.len(), rounds.len());
+    // Every acknowledged feedback is stored once: its repeat is answered from the store.
+    let live = vec![f2.addr.clone(), f3.addr.clone()];
+    let mut labelled = 0;
+    for (i, _, fb) in &acked {
+        let Some((body, answer)) = fb else { continue };
+        labelled += 1;
+        let r = post_until_served(&live, *i, "/v1/feedback", body);
+        assert_eq!(
+            r.header("x-vlmfuse-repeated"),
+            Some("true"),
+            "round {i} was not stored"
+        );
+        assert_eq!(&r.json(), answer, "round {i}: the repeat differs");
+    }
+    let feedback = db.sql("burst", "SELECT count(*) FROM feedback").unwrap();
+    assert_eq!(feedback, labelled.to_string());
+
+    // The engine equals a full replay: a fresh replica (no snapshot) rebuilds it from every
+    // event, and it, the new writer and the other follower agree.
+    let fresh = Server::start(
+        &tmp.path().join("r4"),
+        &follower(&url, "r4", &reporters),
+        &[],
+    );
+    let want = labelled as u64 + rounds.len() as u64;
+    let mut states = Vec::new();
+    for s in [&f2, &f3, &fresh] {
+        let t = Instant::now();
+        let st = loop {
+            let st = s.state();
+            if st["state_seq"].as_u64() == Some(want) || t.elapsed() > Duration::from_secs(10) {
+                break st;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        assert_eq!(st["state_seq"].as_u64(), Some(want), "{st}");
+        states.push(st);
+    }
+    for key in [
+        "reputations",
+        "labelled_rounds",
+        "threshold",
+        "reporters",
+        "rounds",
+    ] {
+        assert_eq!(
+            states[0][key], states[2][key],
+            "{key}: the live engine differs from a full replay"
+        );
+        assert_eq!(
+            states[1][key], states[2][key],
+            "{key}: a follower differs from a full replay"
+        );
+    }
+}
