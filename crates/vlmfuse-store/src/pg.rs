@@ -289,6 +289,9 @@ fn take_lease(db: &Db, o: &PgOptions, wait: Duration) -> Result<(), StoreError> 
 pub struct LeaseHeld {
     pub holder: String,
     pub since_ms: i64,
+    /// [`PgOptions::lease_timeout`]: past it without an answer from its session, the holder
+    /// must assume the lease gone.
+    pub timeout: Duration,
 }
 
 /// The writer's session: connected, holding the lease, the schema created or checked, the
@@ -320,6 +323,7 @@ pub(crate) fn open_writer(o: &PgOptions) -> Result<(Db, LeaseHeld), StoreError> 
     let held = LeaseHeld {
         holder: o.holder_name(),
         since_ms: crate::timestamp_ms(),
+        timeout: o.lease_timeout,
     };
     db.exec(
         "INSERT INTO lease (id, holder, since_ms, address) VALUES (1, ?1, ?2, '')

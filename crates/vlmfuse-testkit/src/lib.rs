@@ -11,6 +11,7 @@
 
 pub mod clips;
 pub mod multipart;
+pub mod netcut;
 pub mod pg;
 pub mod resp;
 pub mod rng;

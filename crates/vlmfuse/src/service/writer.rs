@@ -485,13 +485,13 @@ pub fn serve_writes(
 
 fn run(
     store: &mut Store,
-    shared: &Shared,
+    shared: &Arc<Shared>,
     keys: &mut Keys,
     snaps: &mut Snapshots,
     rx: mpsc::Receiver<Cmd>,
 ) {
     let mut dim = shared.engine.blocking_read().dim();
-    let mut lease = Lease::new(store);
+    let mut lease = Lease::new(store, shared);
     loop {
         // Wake at least once a second while idle, so a snapshot due by time is written even
         // when no request comes, and the writer lease's session sees a sign of life.
@@ -563,18 +563,67 @@ struct Lease {
     on: bool,
     last: Instant,
     advertised: bool,
+    /// When the lease's session last answered (ms since the epoch), for the watchdog.
+    answered_ms: Arc<std::sync::atomic::AtomicI64>,
+    /// Set when the writer loop ends: the watchdog stops (a clean shutdown's last snapshot
+    /// may take longer than the lease's timeout).
+    done: Arc<AtomicBool>,
+}
+
+impl Drop for Lease {
+    fn drop(&mut self) {
+        self.done.store(true, Ordering::SeqCst);
+    }
 }
 
 /// The exit status of a writer that lost its lease (EX_TEMPFAIL): its supervisor restarts it,
-/// and it comes back as a standby.
+/// and it comes back as a follower.
 pub const LEASE_LOST_EXIT: i32 = 75;
 
 impl Lease {
-    fn new(store: &Store) -> Self {
+    /// With a lease, also starts its watchdog: a session that stops answering (a partition that
+    /// drops packets without a reset, where the client's own keepalives are answered by a
+    /// middlebox) would leave this thread blocked in its round trip; past the lease's timeout
+    /// without an answer the server has ended the session anyway, so the watchdog refuses
+    /// writes and exits as a lost lease does.
+    fn new(store: &Store, shared: &Arc<Shared>) -> Self {
+        let answered_ms = Arc::new(std::sync::atomic::AtomicI64::new(
+            vlmfuse_store::timestamp_ms(),
+        ));
+        let done = Arc::new(AtomicBool::new(false));
+        if let Some(held) = store.lease() {
+            let (answered, shared, stop) = (answered_ms.clone(), shared.clone(), done.clone());
+            let timeout_ms = held.timeout.as_millis() as i64;
+            let place = store.path().display().to_string();
+            let spawned = std::thread::Builder::new()
+                .name("vlmfuse-lease".into())
+                .spawn(move || loop {
+                    std::thread::sleep(std::time::Duration::from_millis(250));
+                    if stop.load(Ordering::SeqCst) {
+                        return;
+                    }
+                    let silent = vlmfuse_store::timestamp_ms() - answered.load(Ordering::SeqCst);
+                    if silent > timeout_ms {
+                        shared.mark_broken(format!(
+                            "lost the writer lease on {place}: its database session has not \
+                             answered for {:.1} s (past [store] lease_timeout_s, the server has \
+                             ended it); exiting with status {LEASE_LOST_EXIT} to restart as a \
+                             follower",
+                            silent as f64 / 1000.0
+                        ));
+                        std::process::exit(LEASE_LOST_EXIT);
+                    }
+                });
+            if let Err(e) = spawned {
+                tracing::warn!("cannot start the lease watchdog: {e}");
+            }
+        }
         Lease {
             on: store.is_postgres(),
             last: Instant::now(),
             advertised: false,
+            answered_ms,
+            done,
         }
     }
 
@@ -607,13 +656,15 @@ impl Lease {
         }
         self.last = Instant::now();
         if store.alive() {
+            self.answered_ms
+                .store(vlmfuse_store::timestamp_ms(), Ordering::SeqCst);
             metrics::gauge!("vlmfuse_store_lease_held").set(1.0);
             return;
         }
         metrics::gauge!("vlmfuse_store_lease_held").set(0.0);
         shared.mark_broken(format!(
             "lost the writer lease on {}: its database session ended (another replica may \
-             be writing now); exiting with status {LEASE_LOST_EXIT} to restart as a standby",
+             be writing now); exiting with status {LEASE_LOST_EXIT} to restart as a follower",
             store.path().display()
         ));
         std::process::exit(LEASE_LOST_EXIT);

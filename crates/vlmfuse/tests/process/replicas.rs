@@ -587,3 +587,88 @@ fn a_burst_from_several_clients_survives_kill_9_of_the_writer() {
         );
     }
 }
+
+/// A partition that drops packets (no reset, no close: the writer's database connection goes
+/// silent through a relay that stops moving bytes): the server ends the silent session within the
+/// lease timeout, a follower takes over, and the old writer, blocked in its round trip, gives up
+/// within the same timeout and exits.
+#[test]
+fn a_silent_partition_hands_the_lease_over_within_its_timeout() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (all, _) = rounds(tmp.path());
+    let rounds = &all[..30];
+    let reporters = sorted_reporters(rounds).join(",");
+    let db = pg();
+    let url = db.create_db("partition").unwrap();
+    let relay = vlmfuse_testkit::netcut::Relay::start(&format!("127.0.0.1:{}", db.port())).unwrap();
+    let via = format!(
+        "postgres://{}@127.0.0.1:{}/partition",
+        vlmfuse_testkit::pg::USER,
+        relay.port()
+    );
+    let mut first = Server::start(
+        &tmp.path().join("r1"),
+        &follower(&via, "r1", &reporters),
+        &[],
+    );
+    let second = Server::start(
+        &tmp.path().join("r2"),
+        &follower(&url, "r2", &reporters),
+        &[],
+    );
+    let mut prog = Progress::default();
+    for k in 0..15 {
+        let addr = if k % 2 == 0 {
+            &first.addr
+        } else {
+            &second.addr
+        };
+        let t = Instant::now();
+        while !replay(addr, &rounds[..k + 1], &mut prog) {
+            assert!(
+                t.elapsed() < Duration::from_secs(30),
+                "round {k} not served"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    relay.cut();
+    let cut_at = Instant::now();
+    let took_over = loop {
+        let role = second.get("/readyz").json()["components"]["store"]["role"].clone();
+        if role == "writer" {
+            break cut_at.elapsed();
+        }
+        assert!(
+            cut_at.elapsed() < Duration::from_secs(20),
+            "no takeover after the partition"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let status = loop {
+        if let Some(s) = first.child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(
+            cut_at.elapsed() < Duration::from_secs(20),
+            "the partitioned writer kept running"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let exited = cut_at.elapsed();
+    eprintln!(
+        "silent partition: the follower wrote {:.2} s after the cut, the old writer exited ({:?}) after {:.2} s",
+        took_over.as_secs_f64(),
+        status.code(),
+        exited.as_secs_f64()
+    );
+    assert_eq!(status.code(), Some(75));
+    // Lease timeout 3 s: the server ends the silent session in about that, the follower asks
+    // every 0.5 s.
+    assert!(took_over < Duration::from_secs(8), "{took_over:?}");
+    first.kill9();
+    assert!(replay(&second.addr, rounds, &mut prog));
+    let st = second.state();
+    assert_eq!(st["rounds"].as_u64(), Some(30));
+}
