@@ -150,8 +150,9 @@ impl Drop for PgConn {
 pub(crate) enum Db {
     Lite(rusqlite::Connection),
     /// `RefCell`: `postgres::Client` needs `&mut` for every query, the store's reads take
-    /// `&self` (as rusqlite's do); a store is used by one thread at a time.
-    Pg(RefCell<PgConn>),
+    /// `&self` (as rusqlite's do); a store is used by one thread at a time. Boxed: the client
+    /// is large and a store is made once.
+    Pg(Box<RefCell<PgConn>>),
 }
 
 impl From<postgres::Error> for StoreError {
@@ -265,10 +266,10 @@ fn pg_row(row: &postgres::Row) -> Result<Row, StoreError> {
 
 impl Db {
     pub(crate) fn pg(client: postgres::Client) -> Self {
-        Db::Pg(RefCell::new(PgConn {
+        Db::Pg(Box::new(RefCell::new(PgConn {
             client: Some(client),
             stmts: HashMap::new(),
-        }))
+        })))
     }
 
     pub(crate) fn is_pg(&self) -> bool {

@@ -69,7 +69,7 @@ pub struct FuseBatchOut {
 #[derive(Serialize)]
 #[serde(untagged)]
 pub enum Fused {
-    Local(FuseOut),
+    Local(Box<FuseOut>),
     Remote(serde_json::Value),
 }
 

@@ -65,11 +65,14 @@ pub fn fingerprint(parts: &[&[u8]]) -> String {
     h.finalize().iter().map(|b| format!("{b:02x}")).collect()
 }
 
-/// Sets each round's id from the first `seq`.
+/// Answers fused here, for a rendering.
 fn local(outs: Vec<FuseOut>) -> Vec<Fused> {
-    outs.into_iter().map(Fused::Local).collect()
+    outs.into_iter()
+        .map(|o| Fused::Local(Box::new(o)))
+        .collect()
 }
 
+/// Sets each round's id from the first `seq`.
 fn number(rounds: &mut [FuseOut], first: u64) {
     for (i, r) in rounds.iter_mut().enumerate() {
         r.round_id = round_id(first + i as u64);

@@ -137,6 +137,7 @@ impl Starting {
             Err(_) => {
                 let mut c = self.child.take().unwrap();
                 let _ = c.kill();
+                let _ = c.wait();
                 let log =
                     std::fs::read_to_string(self.data_dir.join("server.log")).unwrap_or_default();
                 panic!("server did not start; log:\n{log}");
