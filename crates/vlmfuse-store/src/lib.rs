@@ -639,6 +639,10 @@ impl Store {
         match at {
             Location::Sqlite { dir } => Self::open_waiting(dir, wait),
             Location::Postgres(o) => {
+                std::fs::create_dir_all(&o.data_dir).map_err(|source| StoreError::DataDir {
+                    path: o.data_dir.clone(),
+                    source,
+                })?;
                 let lock = DirLock::acquire(&o.data_dir, wait)?;
                 let (db, held) = pg::open_writer(o)?;
                 Ok(Self {

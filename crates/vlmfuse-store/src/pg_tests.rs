@@ -24,10 +24,13 @@ fn a_postgres_store_rebuilds_what_sqlite_rebuilds_bit_for_bit() {
     let pg = server();
     for method in [Paper, Adaptive] {
         let url = pg.create_db(&format!("parity_{}", method.name())).unwrap();
-        let (lite_dir, pg_dir) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+        let (lite_dir, pg_tmp) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+        // A replica's data directory need not exist yet.
+        let pg_dir = pg_tmp.path().join("replica");
+        let pg_dir = pg_dir.as_path();
         let (mut on_lite, mut on_pg) = (engine_with(method), engine_with(method));
         let mut lite = Store::open(lite_dir.path()).unwrap();
-        let mut post = writer(&url, pg_dir.path());
+        let mut post = writer(&url, pg_dir);
         assert!(post.is_postgres() && post.alive());
         lite.check_identity(&identity(&on_lite)).unwrap();
         post.check_identity(&identity(&on_pg)).unwrap();
@@ -48,7 +51,7 @@ fn a_postgres_store_rebuilds_what_sqlite_rebuilds_bit_for_bit() {
                 })
                 .unwrap()
         );
-        snapshot::write(&snapshot::dir_of(pg_dir.path()), &on_pg, &anchor, 2).unwrap();
+        snapshot::write(&snapshot::dir_of(pg_dir), &on_pg, &anchor, 2).unwrap();
         play(&mut on_lite, &mut lite, 40, 90);
         play(&mut on_pg, &mut post, 40, 90);
         assert_eq!(
@@ -88,7 +91,7 @@ fn a_postgres_store_rebuilds_what_sqlite_rebuilds_bit_for_bit() {
         drop(post);
 
         // A restart on each: from the snapshot plus its tail, and by the full replay.
-        let mut post = writer(&url, pg_dir.path());
+        let mut post = writer(&url, pg_dir);
         let (mut from_snap, mut full) = (engine_with(method), engine_with(method));
         let rep = post.load_engine(&mut from_snap).unwrap();
         assert!(
