@@ -50,6 +50,9 @@ pub struct Follower {
     promoted: AtomicBool,
     client: reqwest::Client,
     api_key: Option<String>,
+    /// Set by a forwarded write the writer acknowledged: the follow thread reads the database at
+    /// once instead of at its next period, so the write's answer does not wait for a poll.
+    wake: (std::sync::Mutex<bool>, std::sync::Condvar),
 }
 
 /// What the writer answered to a forwarded request.
@@ -74,6 +77,7 @@ impl Follower {
                 .build()
                 .unwrap_or_default(),
             api_key,
+            wake: (std::sync::Mutex::new(false), std::sync::Condvar::new()),
         }
     }
 
@@ -153,8 +157,12 @@ impl Follower {
         if status >= 400 {
             return Err(ServiceError::Forwarded { status, body });
         }
-        if let Some(p) = position {
+        if let Some(p) = position.filter(|p| {
+            let at = self.position();
+            at.rounds < p.rounds || at.labelled < p.labelled
+        }) {
             let mut rx = self.position.subscribe();
+            self.wake_up();
             let caught_up = tokio::time::timeout(
                 CATCH_UP_WAIT,
                 rx.wait_for(|at| at.rounds >= p.rounds && at.labelled >= p.labelled),
@@ -172,6 +180,24 @@ impl Follower {
             replayed,
             repeated,
         })
+    }
+}
+
+impl Follower {
+    fn wake_up(&self) {
+        let (flag, cv) = &self.wake;
+        *flag.lock().unwrap_or_else(|e| e.into_inner()) = true;
+        cv.notify_one();
+    }
+
+    /// Waits until woken or `period` passed.
+    fn sleep(&self, period: Duration) {
+        let (flag, cv) = &self.wake;
+        let guard = flag.lock().unwrap_or_else(|e| e.into_inner());
+        let (mut guard, _) = cv
+            .wait_timeout_while(guard, period, |woken| !*woken)
+            .unwrap_or_else(|e| e.into_inner());
+        *guard = false;
     }
 }
 
@@ -223,9 +249,9 @@ fn follow(
     loop {
         // Commands only come here once this replica writes (until then every write is
         // forwarded before it reaches the queue); a closed queue means the service is gone.
-        match rx.recv_timeout(FOLLOW_EVERY) {
-            Err(mpsc::RecvTimeoutError::Disconnected) => return,
-            Ok(_) | Err(mpsc::RecvTimeoutError::Timeout) => {}
+        follower.sleep(FOLLOW_EVERY);
+        if let Err(mpsc::TryRecvError::Disconnected) = rx.try_recv() {
+            return;
         }
         if reader.is_none() {
             let o = match &promotion.location {
