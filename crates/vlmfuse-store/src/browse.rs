@@ -3,6 +3,7 @@
 //! bounded range over a primary key or an index, so it costs the same at any store size.
 
 use super::*;
+use crate::db::Row;
 
 /// A frame thumbnail kept with a round (JPEG), for the operator page.
 #[derive(Debug, Clone, PartialEq)]

@@ -12,7 +12,7 @@
 //! [`snapshot`]s of the engine now and then: a start loads the newest usable one and replays
 //! only the events after it, which gives the same engine, bit for bit.
 
-use db::{Db, Row, P};
+use db::{Db, Get, P};
 use rusqlite::{Connection, OpenFlags};
 use serde::{Deserialize, Serialize};
 use std::fs::File;
@@ -305,7 +305,7 @@ fn bools_to_blob(v: &[bool]) -> Vec<u8> {
 }
 
 /// A round from the `context`, `present` and `reports` columns of a row, from column `at`.
-fn round_from(row: &Row, at: usize) -> Result<Round, StoreError> {
+fn round_from(row: &(impl Get + ?Sized), at: usize) -> Result<Round, StoreError> {
     Ok(Round {
         context: blob_to_f64s(row.blob(at)?)?,
         present: row.blob(at + 1)?.iter().map(|&b| b != 0).collect(),
@@ -316,7 +316,11 @@ fn round_from(row: &Row, at: usize) -> Result<Round, StoreError> {
 /// A feedback row of round `seq` from the columns `labelled_order, truth, outcome,
 /// rounds_before, source`, from column `at`. A row written before `rounds_before` was kept
 /// falls right after its round.
-fn feedback_from(row: &Row, seq: u64, at: usize) -> Result<StoredFeedback, StoreError> {
+fn feedback_from(
+    row: &(impl Get + ?Sized),
+    seq: u64,
+    at: usize,
+) -> Result<StoredFeedback, StoreError> {
     let before = row.opt_i64(at + 3)?;
     Ok(StoredFeedback {
         seq,
@@ -324,7 +328,7 @@ fn feedback_from(row: &Row, seq: u64, at: usize) -> Result<StoredFeedback, Store
         rounds_before: before.map_or(seq + 1, |b| b as u64),
         truth: row.blob(at + 1)?.to_vec(),
         outcome: serde_json::from_str(row.str(at + 2)?)?,
-        source: row.string(at + 4)?,
+        source: row.str(at + 4)?.to_string(),
     })
 }
 
@@ -337,53 +341,6 @@ struct Replayed {
     inferences: Vec<(u64, Inference)>,
     /// By labelling order (a round may have several).
     outcomes: Vec<(u64, FeedbackOutcome)>,
-}
-
-/// Rows of a big table read a page at a time in key order: `sql` takes the first key as `?1`
-/// and the page size as `?2`, orders by the key, and has it in column `key_at`. Bounded memory
-/// at any table size, and no cursor held open across the caller's other queries.
-struct Pager<'s> {
-    db: &'s Db,
-    sql: &'static str,
-    key_at: usize,
-    next_key: u64,
-    done: bool,
-    page: std::vec::IntoIter<Row>,
-}
-
-/// Rows per page of a replay: a few megabytes of contexts at most.
-const PAGE_ROWS: i64 = 512;
-
-impl<'s> Pager<'s> {
-    fn new(db: &'s Db, sql: &'static str, key_at: usize, from: u64) -> Self {
-        Pager {
-            db,
-            sql,
-            key_at,
-            next_key: from,
-            done: false,
-            page: Vec::new().into_iter(),
-        }
-    }
-
-    fn next(&mut self) -> Result<Option<Row>, StoreError> {
-        loop {
-            if let Some(r) = self.page.next() {
-                return Ok(Some(r));
-            }
-            if self.done {
-                return Ok(None);
-            }
-            let rows = self
-                .db
-                .query(self.sql, &[P::I(self.next_key as i64), P::I(PAGE_ROWS)])?;
-            self.done = (rows.len() as i64) < PAGE_ROWS;
-            if let Some(last) = rows.last() {
-                self.next_key = last.u64(self.key_at)? + 1;
-            }
-            self.page = rows.into_iter();
-        }
-    }
 }
 
 /// A replay's rounds from `?1`, a page of `?2`: what the engine learns from each (its
@@ -403,17 +360,125 @@ const REPLAY_FEEDBACK: &str = "SELECT r.seq, r.context, r.present, r.reports, r.
  FROM feedback f JOIN rounds r ON r.seq = f.seq
  WHERE f.labelled_order >= ?1 ORDER BY f.labelled_order LIMIT ?2";
 
+/// Rows of a big table read a page at a time in key order, each decoded in place by `decode`:
+/// `sql` takes the first key as `?1` and the page size as `?2`, orders by the key, and `key`
+/// gives a decoded row's. Bounded memory at any table size, and no cursor held open across the
+/// caller's other queries.
+struct Pager<'s, T, F> {
+    db: &'s Db,
+    sql: &'static str,
+    decode: F,
+    key: fn(&T) -> u64,
+    next_key: u64,
+    done: bool,
+    page: std::vec::IntoIter<T>,
+}
+
+/// Rows per page of a replay: a few megabytes of contexts at most.
+const PAGE_ROWS: i64 = 512;
+
+impl<'s, T, F: FnMut(&dyn Get) -> Result<T, StoreError>> Pager<'s, T, F> {
+    fn new(db: &'s Db, sql: &'static str, from: u64, key: fn(&T) -> u64, decode: F) -> Self {
+        Pager {
+            db,
+            sql,
+            decode,
+            key,
+            next_key: from,
+            done: false,
+            page: Vec::new().into_iter(),
+        }
+    }
+
+    fn next(&mut self) -> Result<Option<T>, StoreError> {
+        loop {
+            if let Some(r) = self.page.next() {
+                return Ok(Some(r));
+            }
+            if self.done {
+                return Ok(None);
+            }
+            let rows = self.db.query_with(
+                self.sql,
+                &[P::I(self.next_key as i64), P::I(PAGE_ROWS)],
+                &mut self.decode,
+            )?;
+            self.done = (rows.len() as i64) < PAGE_ROWS;
+            if let Some(last) = rows.last() {
+                self.next_key = (self.key)(last) + 1;
+            }
+            self.page = rows.into_iter();
+        }
+    }
+}
+
+/// A round of a replay, decoded.
+struct RoundItem {
+    seq: u64,
+    round: Round,
+    /// The inference it was served (unread when the replay infers afresh).
+    served: Option<Inference>,
+    /// Feedback followed it.
+    labelled: bool,
+}
+
+/// A feedback of a replay, decoded.
+struct FeedbackItem {
+    seq: u64,
+    order: u64,
+    /// Rounds stored when it was applied.
+    before: u64,
+    truth: Vec<u8>,
+    /// What it was credited with (unread when the replay credits afresh).
+    stored: Option<StoredLabel>,
+    /// A later feedback on the same round follows.
+    more: bool,
+}
+
+fn round_item(row: &dyn Get, fresh: bool) -> Result<RoundItem, StoreError> {
+    Ok(RoundItem {
+        seq: row.u64(0)?,
+        round: round_from(row, 1)?,
+        served: if fresh {
+            None
+        } else {
+            Some(serde_json::from_str(row.str(4)?)?)
+        },
+        labelled: row.bool(5)?,
+    })
+}
+
+fn feedback_item(row: &dyn Get, fresh: bool) -> Result<FeedbackItem, StoreError> {
+    let seq = row.u64(0)?;
+    Ok(FeedbackItem {
+        seq,
+        order: row.u64(8)?,
+        before: row.opt_i64(7)?.map_or(seq + 1, |b| b as u64),
+        truth: row.blob(5)?.to_vec(),
+        stored: if fresh {
+            None
+        } else {
+            Some(StoredLabel {
+                round: round_from(row, 1)?,
+                q: blob_to_f64s(row.blob(4)?)?,
+                outcome: serde_json::from_str(row.str(6)?)?,
+            })
+        },
+        more: row.bool(9)?,
+    })
+}
+
 /// The `rounds` rows, fed to a replay up to a point in event order.
-struct RoundFeed<'s> {
+struct RoundFeed<'s, F> {
     /// `None` when the replay needs no rounds (a method that learns only from feedback).
-    rows: Option<Pager<'s>>,
+    rows: Option<Pager<'s, RoundItem, F>>,
     /// Rounds before this `seq` have been fed.
     fed: u64,
     /// Infer each round again instead of reading its stored inference.
     fresh: bool,
 }
 
-impl RoundFeed<'_> {
+impl<F: FnMut(&dyn Get) -> Result<RoundItem, StoreError>> RoundFeed<'_, F> {
     /// Feeds the rounds stored before the `upto`-th.
     fn feed(
         &mut self,
@@ -425,23 +490,18 @@ impl RoundFeed<'_> {
             return Ok(());
         };
         while self.fed < upto {
-            let Some(row) = rows.next()? else {
+            let Some(item) = rows.next()? else {
                 self.fed = upto;
                 break;
             };
-            let seq = row.u64(0)?;
-            let served = if self.fresh {
-                None
-            } else {
-                Some(serde_json::from_str(row.str(4)?)?)
-            };
+            let seq = item.seq;
             let inf = replay.round(RoundEvent {
                 seq,
-                round: round_from(&row, 1)?,
-                served,
+                round: item.round,
+                served: item.served,
                 sims: None,
                 observe: true,
-                credit_later: self.fresh && row.bool(5)?,
+                credit_later: self.fresh && item.labelled,
             })?;
             if self.fresh {
                 out.inferences.push((seq, inf));
@@ -1242,37 +1302,37 @@ impl Store {
         };
         let mut rounds = RoundFeed {
             rows: if fresh || engine.observes() {
-                Some(Pager::new(&self.db, REPLAY_ROUNDS, 0, first_round))
+                Some(Pager::new(
+                    &self.db,
+                    REPLAY_ROUNDS,
+                    first_round,
+                    |r: &RoundItem| r.seq,
+                    move |row: &dyn Get| round_item(row, fresh),
+                ))
             } else {
                 None
             },
             fed: first_round,
             fresh,
         };
-        let mut fb_rows = Pager::new(&self.db, REPLAY_FEEDBACK, 8, first_fb);
+        let mut fb_rows = Pager::new(
+            &self.db,
+            REPLAY_FEEDBACK,
+            first_fb,
+            |f: &FeedbackItem| f.order,
+            move |row: &dyn Get| feedback_item(row, fresh),
+        );
         let mut replay = Replay::new(engine);
-        while let Some(row) = fb_rows.next()? {
-            let seq = row.u64(0)?;
-            let before = row.opt_i64(7)?.map_or(seq + 1, |b| b as u64);
-            rounds.feed(before, &mut replay, &mut out)?;
-            let stored = if fresh {
-                None
-            } else {
-                Some(StoredLabel {
-                    round: round_from(&row, 1)?,
-                    q: blob_to_f64s(row.blob(4)?)?,
-                    outcome: serde_json::from_str(row.str(6)?)?,
-                })
-            };
-            let order = row.u64(8)?;
+        while let Some(fb) = fb_rows.next()? {
+            rounds.feed(fb.before, &mut replay, &mut out)?;
             let outcome = replay.feedback(FeedbackEvent {
-                seq,
-                truth: row.blob(5)?.to_vec(),
-                stored,
-                more: row.bool(9)?,
+                seq: fb.seq,
+                truth: fb.truth,
+                stored: fb.stored,
+                more: fb.more,
             })?;
             if fresh {
-                out.outcomes.push((order, outcome));
+                out.outcomes.push((fb.order, outcome));
             }
             out.labelled += 1;
         }
