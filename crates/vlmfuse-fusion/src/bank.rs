@@ -495,7 +495,11 @@ impl Bank {
 
     /// Keeps the `m` best `(position, similarity)` pairs, best first: higher similarity wins, and
     /// at equal similarity the older round (smaller sequence).
-    fn select(&self, items: impl Iterator<Item = (usize, f64)>, m: usize) -> Vec<Neighbour> {
+    pub(crate) fn select(
+        &self,
+        items: impl Iterator<Item = (usize, f64)>,
+        m: usize,
+    ) -> Vec<Neighbour> {
         let mut heap: BinaryHeap<Worst> = BinaryHeap::with_capacity(m + 1);
         for (pos, sim) in items {
             let seq = self.seqs[pos];

@@ -153,7 +153,7 @@ pub struct ReporterStats {
 /// the methods' state). A stored copy written under another layout is not read back: the store
 /// then replays the events instead. Bump it with any change to a field of the engine or of the
 /// state it owns; the `layout_is_pinned` test fails until it is bumped and its digest updated.
-pub const ENGINE_LAYOUT: u32 = 7;
+pub const ENGINE_LAYOUT: u32 = 8;
 
 /// The engine: shared state plus the configured method's own. Serialisable so that the store
 /// can keep a snapshot and replay only the events after it; a snapshot read back is the very
@@ -283,10 +283,18 @@ impl Engine {
     }
 
     /// The predictor deciding rounds now under `adaptive` (docs/METHOD.md §3): the whole-pool
-    /// Dawid–Skene, the context-aware model or majority vote. `None` under `paper`, whose one
+    /// Dawid–Skene, the context-aware model, majority vote, the paper rule or the mean of the
+    /// last two. `None` under `paper`, whose one
     /// predictor is the method itself.
     pub fn serving(&self) -> Option<crate::method::adaptive::Predictor> {
         self.method.serving(&self.ctx())
+    }
+
+    /// What `adaptive`'s `paper` candidate (PAPER-METHOD.md's rule over the pool's latest
+    /// labelled rounds) answers for a round: posteriors and thresholds. `None` under `paper` or
+    /// when the candidate is left out.
+    pub fn paper_candidate(&self, round: &Round) -> Option<(Vec<f64>, Vec<f64>)> {
+        self.method.paper_candidate(&self.ctx(), round)
     }
 
     /// The candidates' recent scores the choice of [`Engine::serving`] is made on (`adaptive`);

@@ -40,7 +40,8 @@ pub struct FuseOut {
     pub method: &'static str,
     /// How the labels were decided (docs/METHOD.md §3): `model` (the method's posterior against
     /// its threshold; always under `paper`), `dawid_skene` (the whole-pool Dawid–Skene, which
-    /// `adaptive` serves before labels say otherwise) or `majority_vote`.
+    /// `adaptive` serves before labels say otherwise), `majority_vote`, `paper` (the paper rule
+    /// over the latest labelled rounds) or `model_paper_mean`.
     pub decision: &'static str,
     /// Label id -> the predictor that decided it (one predictor decides a whole round).
     pub decided_by: Ordered<&'static str>,
@@ -291,7 +292,8 @@ pub struct ReplicaOut {
 
 #[derive(Serialize)]
 pub struct ServingOut {
-    /// `dawid_skene`, `model` or `majority_vote` (the same as each response's `decision`).
+    /// `dawid_skene`, `model`, `majority_vote`, `paper` or `model_paper_mean` (the same as
+    /// each response's `decision`).
     pub predictor: &'static str,
     /// The `[fusion.adaptive] serve` rule in force (`switch`, `vote-fallback`, `model`);
     /// absent under `paper`.

@@ -78,6 +78,14 @@ impl MethodState {
         }
     }
 
+    /// `adaptive`'s `paper` candidate's answer for a round (posteriors, thresholds).
+    pub fn paper_candidate(&self, cx: &Ctx, round: &Round) -> Option<(Vec<f64>, Vec<f64>)> {
+        match self {
+            MethodState::Paper(_) => None,
+            MethodState::Adaptive(a) => a.paper_candidate(cx, round),
+        }
+    }
+
     /// The predictor deciding the next round under `adaptive`; `None` under `paper` (whose one
     /// predictor is the method itself).
     pub fn serving(&self, cx: &Ctx) -> Option<adaptive::Predictor> {

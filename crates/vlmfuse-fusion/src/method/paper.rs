@@ -67,109 +67,7 @@ impl Paper {
     }
 
     fn signals(&self, cx: &Ctx, round: &Round, nb: &[Neighbour]) -> Signals {
-        let cfg = cx.cfg;
-        let l = cx.l;
-        let bank = &self.bank;
-        let coalition = round.coalition();
-        let p = coalition.len();
-        let mut theta_pos = vec![0.5; p * l];
-        let mut theta_neg = vec![0.5; p * l];
-        // Empty bank: docs/PAPER-METHOD.md fixes theta and pi at 0.5 (no signal), whatever the Beta priors.
-        let mut prior = vec![0.5; l];
-        if !bank.is_empty() {
-            // Sums a+, b+, a-, b- per member and label, and kernel mass and positives for pi.
-            let mut acc = vec![[0.0f64; 4]; p * l];
-            // Kernel mass per label: with partial feedback an entry counts only toward the
-            // labels whose truth it knows (with every label known, the same sum for each).
-            let mut pi_mass = vec![0.0; l];
-            let mut pi_pos = vec![0.0; l];
-            if cfg.ablations.no_context {
-                for (a, &i) in coalition.iter().enumerate() {
-                    for k in 0..l {
-                        let c = bank.global_counts(i, k);
-                        acc[a * l + k] = [c[0] as f64, c[1] as f64, c[2] as f64, c[3] as f64];
-                    }
-                }
-                for k in 0..l {
-                    pi_mass[k] = bank.global_known(k) as f64;
-                    pi_pos[k] = bank.global_positives(k) as f64;
-                }
-            } else {
-                let kappa: Vec<f64> = nb.iter().map(|n| n.sim.max(0.0).powf(cfg.tau)).collect();
-                for (idx, n) in nb.iter().enumerate().take(cfg.k) {
-                    let kp = kappa[idx];
-                    for (a, &i) in coalition.iter().enumerate() {
-                        if !bank.present(n.pos, i) {
-                            continue;
-                        }
-                        for k in 0..l {
-                            let r = bank.report(n.pos, i, k);
-                            let y = bank.truth(n.pos, k);
-                            let cell = match (r, y) {
-                                (_, 2..) => continue,
-                                (1, 1) => 0,
-                                (0, 1) => 1,
-                                (1, 0) => 2,
-                                _ => 3,
-                            };
-                            acc[a * l + k][cell] += kp;
-                        }
-                    }
-                }
-                for (idx, n) in nb.iter().enumerate().take(cfg.k_prior) {
-                    for k in 0..l {
-                        match bank.truth(n.pos, k) {
-                            0 => pi_mass[k] += kappa[idx],
-                            1 => {
-                                pi_mass[k] += kappa[idx];
-                                pi_pos[k] += kappa[idx];
-                            }
-                            _ => {}
-                        }
-                    }
-                }
-            }
-            for (idx, c) in acc.iter().enumerate() {
-                let (ap, bp) = (cfg.alpha0 + c[0], cfg.beta0 + c[1]);
-                let (an, bn) = (cfg.alpha0 + c[2], cfg.beta0 + c[3]);
-                theta_pos[idx] = ap / (ap + bp);
-                theta_neg[idx] = an / (an + bn);
-            }
-            for k in 0..l {
-                prior[k] =
-                    (cfg.prior_alpha + pi_pos[k]) / (cfg.prior_alpha + cfg.prior_beta + pi_mass[k]);
-            }
-        }
-        let mut rho = vec![0.0; p * p * l];
-        if !cfg.ablations.no_guardrail {
-            for a in 0..p {
-                for b in 0..p {
-                    if a == b {
-                        continue;
-                    }
-                    for k in 0..l {
-                        rho[(a * p + b) * l + k] =
-                            self.corr.rho(coalition[a], coalition[b], k, cfg.rho_max);
-                    }
-                }
-            }
-        }
-        let mut reports = Vec::with_capacity(p * l);
-        for &i in &coalition {
-            reports.extend_from_slice(&round.reports[i * l..(i + 1) * l]);
-        }
-        let w = coalition.iter().map(|&i| cx.w[i]).collect();
-        Signals {
-            l,
-            coalition,
-            theta_pos,
-            theta_neg,
-            rho,
-            prior,
-            reports,
-            w,
-            eps: cfg.eps,
-        }
+        signals(cx, round, &self.bank, &self.corr, nb)
     }
 
     /// A labelled round joins the bank and the correlation window, and the threshold is refitted
@@ -192,5 +90,119 @@ impl Paper {
         self.indexed = self.bank.len();
         self.corr.push(&r.present, &r.reports, &lr.truth);
         self.threshold.push(&lr.q, &lr.truth);
+    }
+}
+
+/// The paper's inputs of a round (PAPER-METHOD.md §2–3): reliabilities and prior from its
+/// labelled neighbours `nb` (best first) in `bank`, the guardrail's correlations from `corr`, the
+/// reputations in force. Shared with `adaptive`'s `paper` candidate, which runs the same rule on
+/// the labelled entries of its pool.
+pub(crate) fn signals(
+    cx: &Ctx,
+    round: &Round,
+    bank: &Bank,
+    corr: &CorrWindow,
+    nb: &[Neighbour],
+) -> Signals {
+    let cfg = cx.cfg;
+    let l = cx.l;
+    let coalition = round.coalition();
+    let p = coalition.len();
+    let mut theta_pos = vec![0.5; p * l];
+    let mut theta_neg = vec![0.5; p * l];
+    // Empty bank: docs/PAPER-METHOD.md fixes theta and pi at 0.5 (no signal), whatever the Beta priors.
+    let mut prior = vec![0.5; l];
+    if !bank.is_empty() {
+        // Sums a+, b+, a-, b- per member and label, and kernel mass and positives for pi.
+        let mut acc = vec![[0.0f64; 4]; p * l];
+        // Kernel mass per label: with partial feedback an entry counts only toward the
+        // labels whose truth it knows (with every label known, the same sum for each).
+        let mut pi_mass = vec![0.0; l];
+        let mut pi_pos = vec![0.0; l];
+        if cfg.ablations.no_context {
+            for (a, &i) in coalition.iter().enumerate() {
+                for k in 0..l {
+                    let c = bank.global_counts(i, k);
+                    acc[a * l + k] = [c[0] as f64, c[1] as f64, c[2] as f64, c[3] as f64];
+                }
+            }
+            for k in 0..l {
+                pi_mass[k] = bank.global_known(k) as f64;
+                pi_pos[k] = bank.global_positives(k) as f64;
+            }
+        } else {
+            let kappa: Vec<f64> = nb.iter().map(|n| n.sim.max(0.0).powf(cfg.tau)).collect();
+            for (idx, n) in nb.iter().enumerate().take(cfg.k) {
+                let kp = kappa[idx];
+                for (a, &i) in coalition.iter().enumerate() {
+                    if !bank.present(n.pos, i) {
+                        continue;
+                    }
+                    for k in 0..l {
+                        let r = bank.report(n.pos, i, k);
+                        let y = bank.truth(n.pos, k);
+                        let cell = match (r, y) {
+                            (_, 2..) => continue,
+                            (1, 1) => 0,
+                            (0, 1) => 1,
+                            (1, 0) => 2,
+                            _ => 3,
+                        };
+                        acc[a * l + k][cell] += kp;
+                    }
+                }
+            }
+            for (idx, n) in nb.iter().enumerate().take(cfg.k_prior) {
+                for k in 0..l {
+                    match bank.truth(n.pos, k) {
+                        0 => pi_mass[k] += kappa[idx],
+                        1 => {
+                            pi_mass[k] += kappa[idx];
+                            pi_pos[k] += kappa[idx];
+                        }
+                        _ => {}
+                    }
+                }
+            }
+        }
+        for (idx, c) in acc.iter().enumerate() {
+            let (ap, bp) = (cfg.alpha0 + c[0], cfg.beta0 + c[1]);
+            let (an, bn) = (cfg.alpha0 + c[2], cfg.beta0 + c[3]);
+            theta_pos[idx] = ap / (ap + bp);
+            theta_neg[idx] = an / (an + bn);
+        }
+        for k in 0..l {
+            prior[k] =
+                (cfg.prior_alpha + pi_pos[k]) / (cfg.prior_alpha + cfg.prior_beta + pi_mass[k]);
+        }
+    }
+    let mut rho = vec![0.0; p * p * l];
+    if !cfg.ablations.no_guardrail {
+        for a in 0..p {
+            for b in 0..p {
+                if a == b {
+                    continue;
+                }
+                for k in 0..l {
+                    rho[(a * p + b) * l + k] = corr.rho(coalition[a], coalition[b], k, cfg.rho_max);
+                }
+            }
+        }
+    }
+    let mut reports = Vec::with_capacity(p * l);
+    for &i in &coalition {
+        reports.extend_from_slice(&round.reports[i * l..(i + 1) * l]);
+    }
+    let w = coalition.iter().map(|&i| cx.w[i]).collect();
+    Signals {
+        l,
+        coalition,
+        theta_pos,
+        theta_neg,
+        rho,
+        prior,
+        reports,
+        w,
+        eps: cfg.eps,
     }
 }

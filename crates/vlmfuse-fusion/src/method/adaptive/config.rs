@@ -215,6 +215,11 @@ pub struct AdaptiveConfig {
     /// `switch`: how much lower another candidate's loss must be than the serving one's before
     /// it serves (hysteresis: no flipping on ties and noise).
     pub switch_margin: f64,
+    /// `switch`: the `paper` candidate (PAPER-METHOD.md's rule over the pool's labelled
+    /// entries) searches only the latest `paper_window` labelled rounds for its neighbours, so
+    /// that its cost per round is bounded at any scale (and it forgets what drift made stale).
+    /// 0 leaves the candidate out.
+    pub paper_window: usize,
     /// The whole-pool Dawid–Skene's pseudo-observations pulling each label's reliabilities
     /// toward the reporter's pooled over labels (docs/METHOD.md §3).
     pub ds_label_strength: f64,
@@ -277,6 +282,7 @@ impl Default for AdaptiveConfig {
             switch_discount: 0.99,
             switch_fn_cost: 1.5,
             switch_margin: 3.0,
+            paper_window: 2_000,
             ds_label_strength: 30.0,
             threshold_initial: 0.505,
             threshold_min_rounds: 20,

@@ -1,9 +1,10 @@
 //! Which predictor serves (docs/METHOD.md §3, `serve = "switch"`): the one whose decisions,
 //! scored on each labelled round before its label is learned, have the lowest recent loss.
 //!
-//! Three candidates decide every round: the whole-pool Dawid–Skene ([`super::ds`]), the
-//! context-aware model (the method's calibrated posteriors and fitted thresholds) and majority
-//! vote. Each labelled round adds to every candidate's loss `FP + c FN` over the round's known
+//! Four candidates decide every round: the whole-pool Dawid–Skene ([`super::ds`]), the
+//! context-aware model (the method's calibrated posteriors and fitted thresholds), majority
+//! vote, and the paper method's rule over the latest labelled rounds ([`super::paper`]; left out
+//! with `paper_window = 0`). Each labelled round adds to every candidate's loss `FP + c FN` over the round's known
 //! labels (`c = switch_fn_cost`: a missed label costs more than a false alarm, as micro-F1 has
 //! it), after discounting the loss so far by `switch_discount` (a window of about `1 / (1 -
 //! discount)` labelled rounds, so that a candidate that turns worse, as under drift, is left).
@@ -24,15 +25,31 @@ pub enum Predictor {
     Model,
     /// Majority vote.
     MajorityVote,
+    /// PAPER-METHOD.md's rule (labelled neighbours only, Beta reliabilities, guardrail window)
+    /// over the pool's latest `paper_window` labelled rounds, at its own fitted thresholds.
+    Paper,
+    /// The mean of the model's and the `paper` candidate's posteriors, at the mean of their
+    /// thresholds.
+    Blend,
 }
+
+/// How many candidates the switch keeps a score for.
+pub const CANDIDATES: usize = 5;
 
 impl Predictor {
     /// Every candidate, in the order ties are broken.
-    pub const ALL: [Predictor; 3] = [
+    pub const ALL: [Predictor; CANDIDATES] = [
         Predictor::DawidSkene,
         Predictor::Model,
         Predictor::MajorityVote,
+        Predictor::Paper,
+        Predictor::Blend,
     ];
+
+    /// Whether the candidate needs the `paper` candidate (left out with `paper_window = 0`).
+    pub fn needs_paper(self) -> bool {
+        matches!(self, Predictor::Paper | Predictor::Blend)
+    }
 
     /// The name responses, `/v1/state`, `/metrics` and the operator page give it.
     pub fn name(self) -> &'static str {
@@ -40,6 +57,8 @@ impl Predictor {
             Predictor::DawidSkene => "dawid_skene",
             Predictor::Model => "model",
             Predictor::MajorityVote => "majority_vote",
+            Predictor::Paper => "paper",
+            Predictor::Blend => "model_paper_mean",
         }
     }
 
@@ -83,8 +102,8 @@ pub struct CandidateScore {
 /// The switch's state.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Switch {
-    loss: [f64; 3],
-    counts: [Counts; 3],
+    loss: [f64; CANDIDATES],
+    counts: [Counts; CANDIDATES],
     serving: Predictor,
     /// Labelled rounds scored.
     rounds: u64,
@@ -93,8 +112,8 @@ pub struct Switch {
 impl Default for Switch {
     fn default() -> Self {
         Self {
-            loss: [0.0; 3],
-            counts: [Counts::default(); 3],
+            loss: [0.0; CANDIDATES],
+            counts: [Counts::default(); CANDIDATES],
             serving: Predictor::DawidSkene,
             rounds: 0,
         }
@@ -108,17 +127,21 @@ impl Switch {
     }
 
     /// Scores one labelled round: `decisions[c][k]` is candidate `c`'s decision (in
-    /// [`Predictor::ALL`] order) on label `k`, `truth[k]` 0, 1 or unknown (> 1, skipped).
-    /// Then the serving candidate is chosen again.
+    /// [`Predictor::ALL`] order) on label `k`, `truth[k]` 0, 1 or unknown (> 1, skipped); a
+    /// candidate given no decisions (an empty list: one left out by the configuration) is
+    /// neither scored nor chosen. Then the serving candidate is chosen again.
     pub fn score(
         &mut self,
-        decisions: &[Vec<bool>; 3],
+        decisions: &[Vec<bool>; CANDIDATES],
         truth: &[u8],
         discount: f64,
         fn_cost: f64,
         margin: f64,
     ) {
         for (c, dec) in decisions.iter().enumerate() {
+            if dec.is_empty() {
+                continue;
+            }
             let (mut fp, mut fneg, mut tp) = (0.0, 0.0, 0.0);
             for (&d, &y) in dec.iter().zip(truth) {
                 match (d, y) {
@@ -138,8 +161,8 @@ impl Switch {
         self.rounds += 1;
         // The leader: the lowest loss, ties to the earlier candidate.
         let mut best = 0;
-        for c in 1..3 {
-            if self.loss[c] < self.loss[best] {
+        for c in 1..CANDIDATES {
+            if !decisions[c].is_empty() && self.loss[c] < self.loss[best] {
                 best = c;
             }
         }
@@ -148,10 +171,11 @@ impl Switch {
         }
     }
 
-    /// Every candidate's recent score.
-    pub fn scores(&self) -> Vec<CandidateScore> {
+    /// The recent score of every candidate in play (`paper` only when `with_paper`).
+    pub fn scores(&self, with_paper: bool) -> Vec<CandidateScore> {
         Predictor::ALL
             .iter()
+            .filter(|&&p| with_paper || !p.needs_paper())
             .map(|&p| {
                 let c = self.counts[p.index()];
                 CandidateScore {
@@ -179,7 +203,13 @@ mod tests {
         assert_eq!(s.serving(), Predictor::DawidSkene);
         let truth = [1u8, 0, 1, 0];
         // The model is right, Dawid-Skene misses one label a round, the vote two.
-        let d = [dec(&[0, 0, 1, 0]), dec(&[1, 0, 1, 0]), dec(&[0, 1, 1, 0])];
+        let d = [
+            dec(&[0, 0, 1, 0]),
+            dec(&[1, 0, 1, 0]),
+            dec(&[0, 1, 1, 0]),
+            Vec::new(),
+            Vec::new(),
+        ];
         s.score(&d, &truth, 1.0, 1.5, 3.0);
         // Loss 1.5 against 0: within the margin, no switch.
         assert_eq!(s.serving(), Predictor::DawidSkene);
@@ -187,7 +217,8 @@ mod tests {
         s.score(&d, &truth, 1.0, 1.5, 3.0);
         // 4.5 against 0: past it.
         assert_eq!(s.serving(), Predictor::Model);
-        let sc = s.scores();
+        let sc = s.scores(false);
+        assert_eq!(sc.len(), 3);
         assert_eq!(sc[0].loss, 4.5);
         assert_eq!(sc[2].errors, 6.0);
         assert_eq!(sc[1].micro_f1, 1.0);
@@ -197,12 +228,64 @@ mod tests {
     #[test]
     fn unknown_labels_are_not_scored_and_discounting_forgets() {
         let mut s = Switch::default();
-        let d = [dec(&[1, 1]), dec(&[0, 0]), dec(&[0, 0])];
+        let d = [
+            dec(&[1, 1]),
+            dec(&[0, 0]),
+            dec(&[0, 0]),
+            Vec::new(),
+            Vec::new(),
+        ];
         // The second label is unknown: only the first counts.
         s.score(&d, &[0, 2], 0.5, 1.0, 0.0);
-        assert_eq!(s.scores()[0].loss, 1.0);
+        assert_eq!(s.scores(false)[0].loss, 1.0);
         assert_eq!(s.serving(), Predictor::Model);
         s.score(&d, &[0, 2], 0.5, 1.0, 0.0);
-        assert_eq!(s.scores()[0].loss, 1.5);
+        assert_eq!(s.scores(false)[0].loss, 1.5);
+    }
+
+    #[test]
+    fn the_paper_candidate_serves_when_it_leads_and_never_when_left_out() {
+        let truth = [1u8, 0, 1, 0];
+        let right = dec(&[1, 0, 1, 0]);
+        let wrong = dec(&[0, 1, 0, 1]);
+        let mut s = Switch::default();
+        for _ in 0..2 {
+            s.score(
+                &[
+                    wrong.clone(),
+                    wrong.clone(),
+                    wrong.clone(),
+                    right.clone(),
+                    wrong.clone(),
+                ],
+                &truth,
+                1.0,
+                1.0,
+                3.0,
+            );
+        }
+        assert_eq!(s.serving(), Predictor::Paper);
+        assert_eq!(s.scores(true)[3].predictor, Predictor::Paper);
+        assert_eq!(s.scores(true)[3].errors, 0.0);
+        // Left out: its (empty) decisions are not scored, and it is never chosen, even though
+        // its loss, never added to, is the lowest.
+        let mut s = Switch::default();
+        for _ in 0..3 {
+            s.score(
+                &[
+                    wrong.clone(),
+                    right.clone(),
+                    wrong.clone(),
+                    Vec::new(),
+                    Vec::new(),
+                ],
+                &truth,
+                1.0,
+                1.0,
+                3.0,
+            );
+        }
+        assert_eq!(s.serving(), Predictor::Model);
+        assert_eq!(s.scores(false).len(), 3);
     }
 }

@@ -24,6 +24,7 @@ pub mod calibrate;
 pub mod config;
 pub mod ds;
 pub mod gate;
+pub mod paper;
 pub mod pool;
 mod rows;
 
@@ -104,6 +105,8 @@ pub struct Adaptive {
     ds: ds::GlobalDs,
     /// Which candidate serves under `serve = "switch"`, and their recent losses.
     switch: Switch,
+    /// The switch's `paper` candidate (under `serve = "switch"` with `paper_window > 0`).
+    paper: Option<paper::PaperCandidate>,
     /// Fitted on the calibrated posteriors, with this method's own cold-start rule.
     threshold: ThresholdFitter,
     /// The paper method's window of error correlations, kept only under `guardrail = "window"`.
@@ -180,6 +183,12 @@ impl Tally {
     }
 }
 
+/// The mean of two candidates' posteriors, at the mean of their thresholds.
+fn blend(a: &(Vec<f64>, Vec<f64>), b: &(Vec<f64>, Vec<f64>)) -> (Vec<f64>, Vec<f64>) {
+    let mean = |x: &[f64], y: &[f64]| x.iter().zip(y).map(|(x, y)| 0.5 * (x + y)).collect();
+    (mean(&a.0, &b.0), mean(&a.1, &b.1))
+}
+
 /// Majority vote of a round: a label is on when MORE than half of the present reporters report
 /// it (PAPER-METHOD.md §6).
 pub fn majority_vote(round: &Round, l: usize) -> Vec<u8> {
@@ -237,6 +246,8 @@ impl Adaptive {
             vote_score: Tally::default(),
             ds: ds::GlobalDs::new(n, l),
             switch: Switch::default(),
+            paper: (a.serve == Serve::Switch && a.paper_window > 0)
+                .then(|| paper::PaperCandidate::new(cfg, n, l)),
             threshold: ThresholdFitter::new(&tcfg, l),
             corr: (a.guardrail == Guardrail::Window)
                 .then(|| CorrWindow::new(n, l, cfg.corr_window)),
@@ -816,9 +827,23 @@ impl Adaptive {
                     .posterior(&round.present, &round.reports, cx.cfg.eps),
                 initial(),
             ),
+            Predictor::Paper | Predictor::Blend => {
+                let model = (self.posterior(cx, &signals), self.thresholds(cx));
+                match (&self.paper, self.serving(cx)) {
+                    (Some(p), Predictor::Paper) => p.infer(cx, &self.pool, round),
+                    (Some(p), _) => blend(&model, &p.infer(cx, &self.pool, round)),
+                    (None, _) => model,
+                }
+            }
             Predictor::Model => (self.posterior(cx, &signals), self.thresholds(cx)),
         };
         Inference::decide(signals, q, thresholds, cx.w, Some(scan))
+    }
+
+    /// What the switch's `paper` candidate answers for a round (posteriors, thresholds), when
+    /// it is kept.
+    pub fn paper_candidate(&self, cx: &Ctx, round: &Round) -> Option<(Vec<f64>, Vec<f64>)> {
+        self.paper.as_ref().map(|p| p.infer(cx, &self.pool, round))
     }
 
     /// The candidates' recent scores that decide who serves: under `switch` all three
@@ -826,7 +851,7 @@ impl Adaptive {
     /// (the loss is then the error count), under `model` none.
     pub fn candidate_scores(&self, cx: &Ctx) -> Vec<CandidateScore> {
         match cx.cfg.adaptive.serve {
-            Serve::Switch => self.switch.scores(),
+            Serve::Switch => self.switch.scores(self.paper.is_some()),
             Serve::VoteFallback => [
                 (Predictor::Model, &self.model_score),
                 (Predictor::MajorityVote, &self.vote_score),
@@ -1202,6 +1227,16 @@ impl Adaptive {
                 .collect(),
             _ => lr.q.clone(),
         };
+        // The `paper` candidate's posteriors for this round, before it learns the label: what
+        // the switch scores it on and what its threshold is fitted on.
+        let known_before = self
+            .pool
+            .position(lr.seq)
+            .is_some_and(|pos| self.pool.is_labelled(pos) || self.pool.is_partial(pos));
+        let paper_q = self
+            .paper
+            .as_ref()
+            .map(|p| p.infer(cx, &self.pool, &lr.round));
         if a.serve != Serve::Model && parts.is_some() {
             let t = self.thresholds(cx);
             let vote = majority_vote(&lr.round, l);
@@ -1221,8 +1256,18 @@ impl Adaptive {
                     .map(|&q| q >= a.threshold_initial)
                     .collect();
                 let vote: Vec<bool> = vote.iter().map(|&v| v != 0).collect();
+                let decide = |(q, t): &(Vec<f64>, Vec<f64>)| -> Vec<bool> {
+                    q.iter().zip(t).map(|(q, t)| q >= t).collect()
+                };
+                let (paper, mean) = match &paper_q {
+                    Some(pq) => (
+                        decide(pq),
+                        decide(&blend(&(model_q.clone(), t.clone()), pq)),
+                    ),
+                    None => (Vec::new(), Vec::new()),
+                };
                 self.switch.score(
-                    &[ds, model, vote],
+                    &[ds, model, vote, paper, mean],
                     &lr.truth,
                     a.switch_discount,
                     a.switch_fn_cost,
@@ -1231,6 +1276,9 @@ impl Adaptive {
             }
         }
         self.threshold.push(&model_q, &lr.truth);
+        if let (Some(p), Some((q, _))) = (self.paper.as_mut(), &paper_q) {
+            p.learn(cx, lr, q, known_before);
+        }
         let pos = match self.pool.position(lr.seq) {
             // Labels it already had, or new ones (partial feedback), or an override.
             Some(pos) => {

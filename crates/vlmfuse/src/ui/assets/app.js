@@ -384,7 +384,7 @@
       // The switch's evidence (adaptive only): who serves, and the candidates' recent scores.
       const gate = (st.serving && st.serving.scores && st.serving.scores.length) ? st.serving.scores : null;
       const serving = st.serving ? st.serving.predictor : null;
-      const short = { majority_vote: "vote", dawid_skene: "Dawid–Skene", model: "model" };
+      const short = { majority_vote: "vote", dawid_skene: "Dawid–Skene", model: "model", paper: "paper rule", model_paper_mean: "model + paper" };
       $("serving-gate").hidden = !gate;
       if (gate) {
         $("serving-gate").tBodies[0].replaceChildren(...gate.map((sc) => {
