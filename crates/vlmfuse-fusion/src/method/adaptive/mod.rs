@@ -1233,10 +1233,16 @@ impl Adaptive {
             .pool
             .position(lr.seq)
             .is_some_and(|pos| self.pool.is_labelled(pos) || self.pool.is_partial(pos));
+        // Under the reputations before this round's credit (those it was inferred under when
+        // no other feedback came between).
+        let before = Ctx {
+            w: outcome.map_or(cx.w, |o| &o.w_before),
+            ..*cx
+        };
         let paper_q = self
             .paper
             .as_ref()
-            .map(|p| p.infer(cx, &self.pool, &lr.round));
+            .map(|p| p.infer(&before, &self.pool, &lr.round));
         if a.serve != Serve::Model && parts.is_some() {
             let t = self.thresholds(cx);
             let vote = majority_vote(&lr.round, l);

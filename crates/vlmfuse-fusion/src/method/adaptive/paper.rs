@@ -15,6 +15,7 @@
 //! paper method's own code for the signals ([`crate::method::paper::signals`]).
 
 use std::collections::VecDeque;
+use std::sync::Mutex;
 
 use super::pool::Pool;
 use crate::config::FusionConfig;
@@ -31,6 +32,27 @@ pub struct PaperCandidate {
     threshold: ThresholdFitter,
     /// Sequence numbers of the latest labelled (or partly labelled) rounds, oldest first.
     recent: VecDeque<u64>,
+    /// Bumped by every [`PaperCandidate::learn`]: what [`Memo`] entries are valid for.
+    #[serde(default)]
+    version: u64,
+    /// The last answer, reused when the same round is asked again with nothing changed in
+    /// between (a round served by this candidate is scored on the very answer it got when its
+    /// label arrives next): a cache, so not state.
+    #[serde(skip)]
+    memo: Memo,
+}
+
+type Answer = (Vec<f64>, Vec<f64>);
+
+/// The last question and answer: (version, reputations, round) -> answer.
+#[derive(Debug, Default)]
+struct Memo(Mutex<Option<(u64, Vec<f64>, Round, Answer)>>);
+
+impl Clone for Memo {
+    /// A copy starts empty (a cache).
+    fn clone(&self) -> Self {
+        Memo::default()
+    }
 }
 
 impl PaperCandidate {
@@ -39,12 +61,26 @@ impl PaperCandidate {
             corr: CorrWindow::new(n, l, cfg.corr_window),
             threshold: ThresholdFitter::new(cfg, l),
             recent: VecDeque::new(),
+            version: 0,
+            memo: Memo::default(),
         }
     }
 
     /// The candidate's posteriors for a round and the thresholds it decides them at. Rounds not
     /// yet labelled are not among the neighbours, so a round being labelled is not its own.
-    pub fn infer(&self, cx: &Ctx, pool: &Pool, round: &Round) -> (Vec<f64>, Vec<f64>) {
+    pub fn infer(&self, cx: &Ctx, pool: &Pool, round: &Round) -> Answer {
+        let mut memo = self.memo.0.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some((v, w, r, a)) = memo.as_ref() {
+            if *v == self.version && w.as_slice() == cx.w && r == round {
+                return a.clone();
+            }
+        }
+        let answer = self.compute(cx, pool, round);
+        *memo = Some((self.version, cx.w.to_vec(), round.clone(), answer.clone()));
+        answer
+    }
+
+    fn compute(&self, cx: &Ctx, pool: &Pool, round: &Round) -> Answer {
         let cfg = cx.cfg;
         let bank = &pool.bank;
         let m = cfg.k.max(cfg.k_prior);
@@ -70,6 +106,7 @@ impl PaperCandidate {
     /// the neighbours searched (once: a later feedback on the same round adds only labels).
     pub fn learn(&mut self, cx: &Ctx, lr: &LabelledRound, q: &[f64], known_before: bool) {
         let r = &lr.round;
+        self.version += 1;
         self.corr.push(&r.present, &r.reports, &lr.truth);
         self.threshold.push(q, &lr.truth);
         if !known_before {
