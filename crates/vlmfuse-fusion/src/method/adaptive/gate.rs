@@ -161,8 +161,8 @@ impl Switch {
         self.rounds += 1;
         // The leader: the lowest loss, ties to the earlier candidate.
         let mut best = 0;
-        for c in 1..CANDIDATES {
-            if !decisions[c].is_empty() && self.loss[c] < self.loss[best] {
+        for (c, dec) in decisions.iter().enumerate().skip(1) {
+            if !dec.is_empty() && self.loss[c] < self.loss[best] {
                 best = c;
             }
         }

@@ -830,8 +830,14 @@ impl Adaptive {
             Predictor::Paper | Predictor::Blend => {
                 let model = (self.posterior(cx, &signals), self.thresholds(cx));
                 match (&self.paper, self.serving(cx)) {
-                    (Some(p), Predictor::Paper) => p.infer(cx, &self.pool, round),
-                    (Some(p), _) => blend(&model, &p.infer(cx, &self.pool, round)),
+                    (Some(p), Predictor::Paper) => {
+                        let a = p.infer(cx, &self.pool, round);
+                        (a.q, a.thresholds)
+                    }
+                    (Some(p), _) => {
+                        let a = p.infer(cx, &self.pool, round);
+                        blend(&model, &(a.q, a.thresholds))
+                    }
                     (None, _) => model,
                 }
             }
@@ -843,7 +849,10 @@ impl Adaptive {
     /// What the switch's `paper` candidate answers for a round (posteriors, thresholds), when
     /// it is kept.
     pub fn paper_candidate(&self, cx: &Ctx, round: &Round) -> Option<(Vec<f64>, Vec<f64>)> {
-        self.paper.as_ref().map(|p| p.infer(cx, &self.pool, round))
+        self.paper.as_ref().map(|p| {
+            let a = p.infer(cx, &self.pool, round);
+            (a.q, a.thresholds)
+        })
     }
 
     /// The candidates' recent scores that decide who serves: under `switch` all three
@@ -1262,14 +1271,15 @@ impl Adaptive {
                     .map(|&q| q >= a.threshold_initial)
                     .collect();
                 let vote: Vec<bool> = vote.iter().map(|&v| v != 0).collect();
-                let decide = |(q, t): &(Vec<f64>, Vec<f64>)| -> Vec<bool> {
-                    q.iter().zip(t).map(|(q, t)| q >= t).collect()
-                };
                 let (paper, mean) = match &paper_q {
-                    Some(pq) => (
-                        decide(pq),
-                        decide(&blend(&(model_q.clone(), t.clone()), pq)),
-                    ),
+                    Some(pa) => {
+                        let (q, t) = blend(
+                            &(model_q.clone(), t.clone()),
+                            &(pa.q.clone(), pa.thresholds.clone()),
+                        );
+                        let mean = q.iter().zip(&t).map(|(q, t)| q >= t).collect();
+                        (pa.decisions(), mean)
+                    }
                     None => (Vec::new(), Vec::new()),
                 };
                 self.switch.score(
@@ -1282,8 +1292,8 @@ impl Adaptive {
             }
         }
         self.threshold.push(&model_q, &lr.truth);
-        if let (Some(p), Some((q, _))) = (self.paper.as_mut(), &paper_q) {
-            p.learn(cx, lr, q, known_before);
+        if let (Some(p), Some(a)) = (self.paper.as_mut(), &paper_q) {
+            p.learn(cx, lr, a, known_before);
         }
         let pos = match self.pool.position(lr.seq) {
             // Labels it already had, or new ones (partial feedback), or an override.
