@@ -691,6 +691,10 @@ fn the_paper_candidate_is_the_paper_method_on_the_labelled_pool() {
     };
     let mut windowed = cand_cfg.clone();
     windowed.adaptive.paper_window = 40;
+    let mut calibrated = cand_cfg.clone();
+    calibrated.adaptive.calibration = true;
+    let mut c = Engine::new(calibrated, Ontology::paper(), names()).unwrap();
+    let mut moved = 0.0f64;
     let mut a = Engine::new(cand_cfg, Ontology::paper(), names()).unwrap();
     let mut w = Engine::new(windowed, Ontology::paper(), names()).unwrap();
     let mut p = Engine::new(paper_cfg, Ontology::paper(), names()).unwrap();
@@ -708,10 +712,17 @@ fn the_paper_candidate_is_the_paper_method_on_the_labelled_pool() {
         for (x, y) in q.iter().zip(&reference.q) {
             worst = worst.max((x - y).abs());
         }
+        // Calibrated, it serves other posteriors but decides as the rule does.
+        let (qc, tc) = c.paper_candidate(&round).unwrap();
+        let decided: Vec<u8> = qc.iter().zip(&tc).map(|(q, t)| (q >= t) as u8).collect();
+        assert_eq!(decided, reference.pred, "round {t}");
+        for (x, y) in qc.iter().zip(&q) {
+            moved = moved.max((x - y).abs());
+        }
         let (qw, _) = w.paper_candidate(&round).unwrap();
         windowed_differs |= t > 60 && qw != q;
         let y = y.clone().unwrap();
-        for e in [&mut a, &mut w, &mut p] {
+        for e in [&mut a, &mut w, &mut c, &mut p] {
             let inf = e.infer(&round);
             e.observe(t as u64, &round, &inf).unwrap();
             let o = e.credit(&inf.signals, &inf.w_used, &y, t as u64);

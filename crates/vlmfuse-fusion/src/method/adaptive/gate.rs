@@ -30,6 +30,7 @@ pub enum Predictor {
     Paper,
     /// The mean of the model's and the `paper` candidate's posteriors, at the mean of their
     /// thresholds.
+    #[serde(rename = "model_paper_mean")]
     Blend,
 }
 
@@ -287,5 +288,9 @@ mod tests {
         }
         assert_eq!(s.serving(), Predictor::Model);
         assert_eq!(s.scores(false).len(), 3);
+        // The wire name is the one `name` gives.
+        for p in Predictor::ALL {
+            assert_eq!(serde_json::to_value(p).unwrap(), p.name());
+        }
     }
 }
