@@ -41,6 +41,16 @@ pub struct Calibrator {
     rounds: VecDeque<(Vec<[f64; 2]>, Vec<u8>)>,
     pooled: Params,
     per_label: Vec<Params>,
+    /// Refit after every `every`-th round taken in (1: each; see [`Calibrator::refit_every`]).
+    #[serde(default = "one")]
+    every: usize,
+    /// Rounds taken in.
+    #[serde(default)]
+    pushed: u64,
+}
+
+fn one() -> usize {
+    1
 }
 
 /// Gradient and Hessian of the negative log-likelihood of `sigmoid(a e + c p + b)`.
@@ -151,7 +161,16 @@ impl Calibrator {
             rounds: VecDeque::new(),
             pooled: IDENTITY,
             per_label: vec![IDENTITY; l],
+            every: 1,
+            pushed: 0,
         }
+    }
+
+    /// Refits after every `n`-th labelled round only (each refit passes over the whole window:
+    /// where the calibration is one of several it costs as much as the rest of a round).
+    pub fn refit_every(mut self, n: usize) -> Self {
+        self.every = n.max(1);
+        self
     }
 
     /// The calibrated probability of label `k` for evidence `e` and prior log-odds `p`.
@@ -173,7 +192,10 @@ impl Calibrator {
         if self.rounds.len() > self.window {
             self.rounds.pop_front();
         }
-        self.refit();
+        self.pushed += 1;
+        if self.pushed.is_multiple_of(self.every as u64) {
+            self.refit();
+        }
     }
 
     fn clamp(&self, th: Params) -> Params {
@@ -241,6 +263,25 @@ mod tests {
             assert!((got[i] - x[i]).abs() < 1e-12);
         }
         assert!(solve3([[0.0; 3]; 3], [1.0, 0.0, 0.0]).is_none());
+    }
+
+    #[test]
+    fn refitting_every_third_round_moves_the_map_only_then() {
+        let mut every = Calibrator::new(1, 100, 1.0, 1.0, 1, 0.05).refit_every(3);
+        let mut each = Calibrator::new(1, 100, 1.0, 1.0, 1, 0.05);
+        let before = every.apply(0, 1.0, 0.0);
+        for (i, (e, y)) in [(2.0, 0u8), (1.5, 0), (2.5, 0)].into_iter().enumerate() {
+            every.push(&[e], &[0.0], &[y]);
+            each.push(&[e], &[0.0], &[y]);
+            if i < 2 {
+                assert_eq!(every.apply(0, 1.0, 0.0), before, "refitted after round {i}");
+                assert_ne!(each.apply(0, 1.0, 0.0), before);
+            }
+        }
+        assert!(
+            every.apply(0, 1.0, 0.0) < before,
+            "not refitted after the third round"
+        );
     }
 
     #[test]

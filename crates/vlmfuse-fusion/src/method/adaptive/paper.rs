@@ -32,6 +32,11 @@ use crate::method::Ctx;
 use crate::signals::clip;
 use crate::threshold::ThresholdFitter;
 
+/// The candidate's calibration is refitted after every `CALIB_EVERY`-th labelled round: a refit
+/// passes over its whole window, and refitting each round doubled the switch's cost of a
+/// labelled round (`vlmfuse bench`); the map moves slowly, and it never changes a decision.
+const CALIB_EVERY: usize = 8;
+
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct PaperCandidate {
     /// The guardrail's window of error correlations, as the paper method keeps it.
@@ -105,6 +110,7 @@ impl PaperCandidate {
                     a.calib_newton_steps,
                     a.calib_min_slope,
                 )
+                .refit_every(CALIB_EVERY)
             },
             recent: VecDeque::new(),
             version: 0,
