@@ -459,6 +459,65 @@ impl Bank {
         self.select(cand.into_iter().map(|j| (j, self.sim(x, j))), m)
     }
 
+    /// [`Bank::top_exact`] over the entries `pos` only (distinct positions): the `m` most
+    /// similar of them, best first, exactly as an f64 ranking of their [`Bank::sim`]s would
+    /// give. With many more of them than `m`, an f32 first pass (eight lanes a step where the
+    /// processor has them) with the same rigorous bound keeps only the entries that can reach
+    /// the `m`-th best for the exact score: the `adaptive` switch's `paper` candidate searches
+    /// its labelled window this way on every labelled round.
+    pub fn top_among(&self, x: &[f64], pos: &[usize], m: usize) -> Vec<Neighbour> {
+        let m = m.min(pos.len());
+        if m == 0 {
+            return Vec::new();
+        }
+        if pos.len() <= 4 * m || self.mirror.len() != self.len() * self.dim {
+            return self.select(pos.iter().map(|&j| (j, self.sim(x, j))), m);
+        }
+        let xq: Vec<f32> = x.iter().map(|&v| v as f32).collect();
+        let xq_err = x
+            .iter()
+            .zip(&xq)
+            .map(|(&a, &b)| (a - b as f64).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        let xq_norm = xq.iter().map(|&v| (v as f64).powi(2)).sum::<f64>().sqrt();
+        let u = f32::EPSILON as f64 / 2.0;
+        let acc = (4 * self.dim + 16) as f64 * u;
+        let d = self.dim;
+        let row = |j: usize| &self.mirror[j * d..(j + 1) * d];
+        let mut approx: Vec<(f64, f64)> = Vec::with_capacity(pos.len());
+        #[cfg(target_arch = "x86_64")]
+        let fast = std::arch::is_x86_feature_detected!("avx2")
+            && std::arch::is_x86_feature_detected!("fma");
+        #[cfg(not(target_arch = "x86_64"))]
+        let fast = false;
+        for &j in pos {
+            #[cfg(target_arch = "x86_64")]
+            let a = if fast {
+                // SAFETY: the features this function is compiled for were just detected.
+                unsafe { dot_f32_avx2(row(j), &xq) }
+            } else {
+                dot_f32_body(row(j), &xq)
+            };
+            #[cfg(not(target_arch = "x86_64"))]
+            let a = {
+                let _ = fast;
+                dot_f32_body(row(j), &xq)
+            };
+            let xn = 1.0 + self.mirror_err[j];
+            let bound = self.mirror_err[j] + xq_err * xn + acc * xn * xq_norm + 1e-12;
+            approx.push((a as f64, bound));
+        }
+        let mut lo: Vec<f64> = approx.iter().map(|&(a, b)| a - b).collect();
+        let (_, &mut cut, _) = lo.select_nth_unstable_by(m - 1, |a, b| b.total_cmp(a));
+        let survivors = pos
+            .iter()
+            .zip(&approx)
+            .filter(|(_, &(a, b))| a + b >= cut)
+            .map(|(&j, _)| (j, self.sim(x, j)));
+        self.select(survivors, m)
+    }
+
     /// The f32 first pass of [`Bank::top_exact`] on its own: every entry's approximate cosine to
     /// a unit-norm query and a rigorous bound on its distance to the exact one, for callers that
     /// rank by something else than the cosine (the `adaptive` pool ranks by decayed kernel
@@ -704,6 +763,18 @@ mod tests {
             b.similarities(&q, &mut sims);
             for m in [1, 10, 50, 120] {
                 assert_eq!(b.top_exact(&q, m), b.top(&sims, m), "query {qi} m {m}");
+            }
+            // Over a subset (every third entry and the duplicates, out of order): the exact
+            // ranking of that subset.
+            let mut subset: Vec<usize> = (0..5000).filter(|j| j % 3 == 0 || j % 7 == 6).collect();
+            subset.reverse();
+            assert!(
+                b.mirror.len() == b.len() * b.dim,
+                "the first pass is not exercised"
+            );
+            for m in [1, 10, 50, 120] {
+                let brute = b.select(subset.iter().map(|&j| (j, sims[j])), m);
+                assert_eq!(b.top_among(&q, &subset, m), brute, "query {qi} m {m}");
             }
         }
         // A query equal to a stored context finds it (and its older duplicate first).

@@ -139,12 +139,12 @@ impl PaperCandidate {
         let nb = if cfg.ablations.no_context || bank.dim() == 0 || round.context.is_empty() {
             Vec::new()
         } else {
-            let items = self
+            let pos: Vec<usize> = self
                 .recent
                 .iter()
                 .filter_map(|&seq| pool.position(seq))
-                .map(|pos| (pos, bank.sim(&round.context, pos)));
-            bank.select(items, m)
+                .collect();
+            bank.top_among(&round.context, &pos, m)
         };
         let signals = crate::method::paper::signals(cx, round, bank, &self.corr, &nb);
         let raw_q = signals.full_posterior();
