@@ -285,9 +285,54 @@ pub fn sample_frames_instrumented(
     sample::run(opened, opts, limits, policy, interrupt)
 }
 
+/// Samples the first frame at or after each of `times` (seconds from the start of the video
+/// stream; finite, ascending, at most [`MAX_SAMPLE_FRAMES`]), as RGB24 at `size`, after checking the
+/// clip against `limits`: for a model whose processor picks its own frames (Qwen3-VL's samples
+/// frame indices at the checkpoint's fps, as transformers does). Same bounds and errors as
+/// [`sample_frames`].
+///
+/// Blocking; call it from `spawn_blocking` in async code.
+pub fn sample_frames_at(
+    path: &Path,
+    times: &[f64],
+    size: FrameSize,
+    limits: &MediaLimits,
+    interrupt: &Interrupt,
+) -> Result<DecodedClip, MediaError> {
+    if times.iter().any(|t| !t.is_finite()) || times.windows(2).any(|w| w[1] < w[0]) {
+        return Err(MediaError::InvalidOptions(
+            "frame times must be finite and ascending".into(),
+        ));
+    }
+    sample::validate_options(&SampleOptions {
+        frames: times.len().max(1),
+        size,
+    })?;
+    let opened = probe::open(path, limits, interrupt)?;
+    sample::run_at(opened, times, size, limits, DecodePolicy::Auto, interrupt).map(|(c, _)| c)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn frame_times_must_be_finite_ascending_and_few_enough() {
+        let p = Path::new("/nonexistent/clip.mp4");
+        let l = MediaLimits::default();
+        let i = Interrupt::new();
+        for bad in [
+            vec![1.0, 0.5],
+            vec![f64::NAN],
+            vec![0.0; MAX_SAMPLE_FRAMES + 1],
+        ] {
+            let e = sample_frames_at(p, &bad, FrameSize::Native, &l, &i).unwrap_err();
+            assert!(matches!(e, MediaError::InvalidOptions(_)), "{e:?}");
+        }
+        // Good times reach the file (which is missing here).
+        let e = sample_frames_at(p, &[0.0, 1.0], FrameSize::Native, &l, &i).unwrap_err();
+        assert!(!matches!(e, MediaError::InvalidOptions(_)), "{e:?}");
+    }
 
     #[test]
     fn targets_are_centred_in_equal_slices() {

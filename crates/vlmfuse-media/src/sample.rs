@@ -97,15 +97,33 @@ pub(crate) fn run(
     policy: DecodePolicy,
     interrupt: &Interrupt,
 ) -> Result<(DecodedClip, DecodeStats), MediaError> {
+    let targets = target_times(opened.info.duration_s, opts.frames);
+    run_at(opened, &targets, opts.size, limits, policy, interrupt)
+}
+
+/// Samples the first frame at or after each of `targets` (seconds, ascending), as
+/// [`run`] does for its uniform targets.
+pub(crate) fn run_at(
+    opened: Opened,
+    targets: &[f64],
+    size: FrameSize,
+    limits: &MediaLimits,
+    policy: DecodePolicy,
+    interrupt: &Interrupt,
+) -> Result<(DecodedClip, DecodeStats), MediaError> {
+    let opts = SampleOptions {
+        frames: targets.len(),
+        size,
+    };
+    let opts = &opts;
     let info = opened.info.clone();
     let (out_w, out_h) = output_size(opts.size, info.width, info.height);
     let total = u64::from(out_w) * u64::from(out_h) * 3 * opts.frames as u64;
     if total > MAX_OUTPUT_BYTES {
         return Err(too_many_bytes(opts.frames, total));
     }
-    let targets = target_times(info.duration_s, opts.frames);
     if opened.complete_index {
-        let frames = min_decodes(&targets, &opened.keyframes, info.fps);
+        let frames = min_decodes(targets, &opened.keyframes, info.fps);
         if frames > limits.max_frames_decoded {
             return Err(MediaError::TooManyFrames {
                 frames,

@@ -651,3 +651,66 @@ fn sampling_is_seeded_per_clip() {
     let batch = a.generate_batch_blocking(&refs, &never).unwrap();
     assert_eq!(batch[1].tokens, a1);
 }
+
+/// Without `frames`, Qwen3-VL takes the frames its checkpoint's video processor samples, as
+/// transformers does: the tiny fixture asks for 2 fps between 2 and 8 frames, so of a 10 s clip
+/// at 10 fps (100 frames) it takes `np.linspace(0, 99, 8).round()` = 0, 14, 28, 42, 57, 71, 85,
+/// 99 (the media layer's uniform sample would be frames 7, 19, ..., 94). The frames given to a
+/// reporter under its name in `own_frames` are the ones it runs on; with `frames` set, the
+/// media layer's frames are spread as before.
+#[test]
+fn qwen_takes_the_frames_its_checkpoint_samples() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = qwen_dir(tmp.path());
+    let clip = vlmfuse_testkit::clips::h264_clip(tmp.path(), "c.mp4", "testsrc", 10.0);
+    let limits = vlmfuse_media::MediaLimits::default();
+    let info = vlmfuse_media::probe(&clip, &limits).unwrap();
+    let r = CandleVlmReporter::load(config("q", &dir, PROMPT, 3)).unwrap();
+    let times = LocalReporter::frame_times(&r, info.duration_s, info.fps).expect("own sampler");
+    let own = vlmfuse_media::sample_frames_at(
+        &clip,
+        &times,
+        vlmfuse_media::FrameSize::Native,
+        &limits,
+        &vlmfuse_media::Interrupt::new(),
+    )
+    .unwrap();
+    // Frame numbers from the presentation times (the clip's rate is constant).
+    let numbers = |c: &vlmfuse_media::DecodedClip| -> Vec<usize> {
+        c.frames
+            .iter()
+            .map(|f| (f.pts_s * info.fps).round() as usize)
+            .collect()
+    };
+    let idx = numbers(&own);
+    assert_eq!(idx, vec![0, 14, 28, 42, 57, 71, 85, 99], "{times:?}");
+    // The media layer's uniform sample of 8 frames: other frames.
+    let media =
+        vlmfuse_media::sample_frames(&clip, &vlmfuse_media::SampleOptions::default(), &limits)
+            .unwrap();
+    assert_ne!(numbers(&media), idx);
+    // The reporter runs on the frames given under its name.
+    let own_frames: Arc<[Frame]> = own.frames.into_iter().map(|f| f.frame).collect();
+    let media_frames: Arc<[Frame]> = media.frames.into_iter().map(|f| f.frame).collect();
+    let mut input = ClipInput {
+        path: clip.clone(),
+        frames: media_frames.clone(),
+        meta: ClipMeta::default(),
+    };
+    input.meta.own_frames.insert("q".into(), own_frames.clone());
+    let cancel = AtomicBool::new(false);
+    let got = r.generate(&input, &cancel).unwrap().text;
+    let want = r.trace(&own_frames, &cancel).unwrap().generation.text;
+    assert_eq!(got, want);
+    assert_eq!(input.frames_for("someone else").len(), media_frames.len());
+    // A fixed frame count: no sampler of its own.
+    let fixed = CandleVlmReporter::load(CandleVlmConfig {
+        frames: Some(4),
+        ..config("f", &dir, PROMPT, 3)
+    })
+    .unwrap();
+    assert!(LocalReporter::frame_times(&fixed, info.duration_s, info.fps).is_none());
+    // Nothing to sample from a clip of no duration or rate.
+    assert!(LocalReporter::frame_times(&r, 0.0, 10.0).is_none());
+    assert!(LocalReporter::frame_times(&r, 10.0, f64::NAN).is_none());
+}

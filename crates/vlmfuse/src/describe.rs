@@ -168,6 +168,8 @@ pub fn run(args: DescribeArgs) -> anyhow::Result<()> {
     };
 
     let rt = tokio::runtime::Runtime::new().context("starting the runtime")?;
+    // The frames the in-process model took, and whether its own sampler chose them.
+    let mut frames_used: Option<(bool, Arc<[Frame]>)> = None;
     let answer = match candle {
         Some(c) => {
             let t = Instant::now();
@@ -189,9 +191,35 @@ pub fn run(args: DescribeArgs) -> anyhow::Result<()> {
                 t.elapsed().as_secs_f64(),
                 r.config().max_new_tokens
             ));
+            // The checkpoint's own sampler, when it has one in force, as the service does.
+            let own =
+                match vlmfuse_models::LocalReporter::frame_times(&r, info.duration_s, info.fps) {
+                    Some(times) => {
+                        let d = vlmfuse_media::sample_frames_at(
+                            &args.clip,
+                            &times,
+                            vlmfuse_media::FrameSize::Native,
+                            &cfg.media.limits(),
+                            &vlmfuse_media::Interrupt::new(),
+                        )
+                        .with_context(|| format!("decoding {}", args.clip.display()))?;
+                        let f: Arc<[Frame]> = d.frames.into_iter().map(|f| f.frame).collect();
+                        say(format!(
+                            "the checkpoint's sampler takes {} frames at {:?} s",
+                            f.len(),
+                            f.iter()
+                                .map(|f| (f.pts_s * 100.0).round() / 100.0)
+                                .collect::<Vec<_>>()
+                        ));
+                        Some(f)
+                    }
+                    None => None,
+                };
+            let used = own.clone().unwrap_or_else(|| frames.clone());
+            frames_used = Some((own.is_some(), used.clone()));
             let t = Instant::now();
             let bar = spinner(args.quiet, "generating".into());
-            let trace = r.trace(&frames, &AtomicBool::new(false));
+            let trace = r.trace(&used, &AtomicBool::new(false));
             done(bar);
             let trace = trace.with_context(|| format!("running reporter `{}`", args.reporter))?;
             Answer {
@@ -217,6 +245,7 @@ pub fn run(args: DescribeArgs) -> anyhow::Result<()> {
                     fps: Some(info.fps),
                     width: Some(info.width),
                     height: Some(info.height),
+                    ..ClipMeta::default()
                 },
             };
             say(format!("asking `{}` ...", args.reporter));
@@ -243,7 +272,18 @@ pub fn run(args: DescribeArgs) -> anyhow::Result<()> {
     };
 
     if let (Some(dir), Some(trace)) = (&args.dump, &answer.trace) {
-        let files = write_dump(dir, trace, &args, &cfg)?;
+        let (own, used) = frames_used.clone().unwrap_or((false, frames.clone()));
+        let sampled = json!({
+            "sampler": if own { "checkpoint" } else { "media" },
+            "clip_fps": info.fps,
+            "clip_duration_s": info.duration_s,
+            "timestamps_s": used.iter().map(|f| f.pts_s).collect::<Vec<_>>(),
+            // The frame numbers, from the timestamps at the clip's average rate.
+            "indices": used.iter().map(|f| (f.pts_s * info.fps).round() as i64).collect::<Vec<_>>(),
+            "sizes": used.iter().map(|f| [f.width, f.height]).collect::<Vec<_>>(),
+            "media": {"frames": cfg.media.frames, "frame_short_side": cfg.media.frame_short_side},
+        });
+        let files = write_dump(dir, trace, &args, &cfg, sampled)?;
         say(format!("wrote {} files to {}", files.len(), dir.display()));
     }
 
@@ -314,6 +354,7 @@ fn write_dump(
     t: &Trace,
     args: &DescribeArgs,
     cfg: &Config,
+    frames: serde_json::Value,
 ) -> anyhow::Result<Vec<PathBuf>> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let mut written = Vec::new();
@@ -325,6 +366,7 @@ fn write_dump(
         Ok(())
     };
     json_file("input_ids.json", json!(t.input_ids))?;
+    json_file("frames.json", frames)?;
     json_file("grid.json", t.grid.clone())?;
     json_file("generated_ids.json", json!(t.generation.tokens))?;
     let weights = cfg.reporter.iter().find_map(|r| match &r.backend {

@@ -74,6 +74,13 @@ pub trait Family: Send + Sync + Sized + 'static {
     fn vocab_size(&self) -> usize;
     /// Frames of each clip the processor takes.
     fn frames(&self) -> usize;
+    /// The presentation times of the frames the checkpoint's own sampler picks from a clip of
+    /// `duration_s` at `fps`, when the family has one in force (the reporter then decodes
+    /// exactly those frames and [`Family::prepare`] takes them all); `None` to take the media
+    /// layer's frames.
+    fn frame_times(&self, _duration_s: f64, _fps: f64) -> Option<Vec<f64>> {
+        None
+    }
 }
 
 /// A batch prepared by some family, its type erased so the reporter holds one kind of value.
@@ -125,6 +132,8 @@ pub trait AnyFamily: Send + Sync {
     fn merged_lora_keys(&self) -> &[String];
     fn vocab_size(&self) -> usize;
     fn frames(&self) -> usize;
+    /// [`Family::frame_times`].
+    fn frame_times(&self, duration_s: f64, fps: f64) -> Option<Vec<f64>>;
     /// The concrete family, for tests and tools that need its model or processor.
     fn as_any(&self) -> &dyn Any;
 }
@@ -191,6 +200,9 @@ impl<F: Family> AnyFamily for F {
     }
     fn frames(&self) -> usize {
         Family::frames(self)
+    }
+    fn frame_times(&self, duration_s: f64, fps: f64) -> Option<Vec<f64>> {
+        Family::frame_times(self, duration_s, fps)
     }
     fn as_any(&self) -> &dyn Any {
         self

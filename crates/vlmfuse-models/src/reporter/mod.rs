@@ -44,6 +44,10 @@ pub struct ClipMeta {
     pub fps: Option<f64>,
     pub width: Option<u32>,
     pub height: Option<u32>,
+    /// Frames decoded for the reporters that pick their own ([`Reporter::frame_times`]), by
+    /// reporter name, in presentation order. A reporter absent here takes `frames`.
+    #[serde(skip)]
+    pub own_frames: std::collections::BTreeMap<String, Arc<[Frame]>>,
 }
 
 /// One clip as every reporter sees it. Frames are behind an `Arc` so reporters can move them to
@@ -55,6 +59,14 @@ pub struct ClipInput {
     /// Frames sampled by the media layer, in presentation order.
     pub frames: Arc<[Frame]>,
     pub meta: ClipMeta,
+}
+
+impl ClipInput {
+    /// The frames reporter `name` takes: its own ([`ClipMeta::own_frames`]) or the media
+    /// layer's.
+    pub fn frames_for(&self, name: &str) -> &[Frame] {
+        self.meta.own_frames.get(name).unwrap_or(&self.frames)
+    }
 }
 
 /// A reporter's answer.
@@ -77,6 +89,14 @@ pub trait Reporter: Send + Sync {
     fn name(&self) -> &str;
     fn run<'a>(&'a self, clip: &'a ClipInput) -> BoxFuture<'a, Result<ReporterOutput, ModelError>>;
 
+    /// The presentation times of the frames this reporter's own sampler takes from a clip of
+    /// `duration_s` at `fps` (an in-process checkpoint whose processor picks frames, as its
+    /// reference does); the caller decodes them into [`ClipMeta::own_frames`]. `None` (the
+    /// default): the media layer's frames.
+    fn frame_times(&self, _duration_s: f64, _fps: f64) -> Option<Vec<f64>> {
+        None
+    }
+
     /// Several clips of one request, one outcome per clip in order. The default runs them
     /// concurrently (a remote server batches on its side); an in-process model runs them as
     /// one batch.
@@ -96,6 +116,10 @@ pub trait Reporter: Send + Sync {
 /// cancels its generation.
 pub trait LocalReporter: Send + Sync + 'static {
     fn name(&self) -> &str;
+    /// [`Reporter::frame_times`].
+    fn frame_times(&self, _duration_s: f64, _fps: f64) -> Option<Vec<f64>> {
+        None
+    }
     fn generate(&self, clip: &ClipInput, cancel: &AtomicBool)
         -> Result<ReporterOutput, ModelError>;
 
@@ -114,6 +138,10 @@ pub trait LocalReporter: Send + Sync + 'static {
 impl<B: LocalReporter + ?Sized> Reporter for BackendPool<B> {
     fn name(&self) -> &str {
         self.backend().name()
+    }
+
+    fn frame_times(&self, duration_s: f64, fps: f64) -> Option<Vec<f64>> {
+        self.backend().frame_times(duration_s, fps)
     }
 
     fn run<'a>(&'a self, clip: &'a ClipInput) -> BoxFuture<'a, Result<ReporterOutput, ModelError>> {

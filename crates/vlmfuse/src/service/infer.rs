@@ -361,6 +361,48 @@ impl Service {
         }
     }
 
+    /// The frames of the reporters that pick their own (an in-process checkpoint's sampler,
+    /// [`vlmfuse_models::Reporter::frame_times`]), decoded under the clip's limits and the
+    /// request's deadline; reporters asking for the same times share one decode.
+    async fn own_frames(
+        &self,
+        path: &std::path::Path,
+        info: &vlmfuse_media::ClipInfo,
+        limits: &vlmfuse_media::MediaLimits,
+        stop: &vlmfuse_media::Interrupt,
+    ) -> Result<std::collections::BTreeMap<String, Arc<[vlmfuse_models::Frame]>>, ServiceError>
+    {
+        let mut out = std::collections::BTreeMap::new();
+        let mut done: Vec<(Vec<f64>, Arc<[vlmfuse_models::Frame]>)> = Vec::new();
+        for rr in &self.pipeline.reporters {
+            let r = &rr.reporter;
+            let Some(times) = r.frame_times(info.duration_s, info.fps) else {
+                continue;
+            };
+            if let Some((_, f)) = done.iter().find(|(t, _)| *t == times) {
+                out.insert(r.name().to_string(), f.clone());
+                continue;
+            }
+            let (p, l, s, t) = (
+                path.to_path_buf(),
+                limits.clone(),
+                stop.clone(),
+                times.clone(),
+            );
+            let decoded = tokio::task::spawn_blocking(move || {
+                vlmfuse_media::sample_frames_at(&p, &t, vlmfuse_media::FrameSize::Native, &l, &s)
+            })
+            .await
+            .map_err(|e| ServiceError::Internal(format!("decoding task failed: {e}")))??;
+            let frames: Arc<[vlmfuse_models::Frame]> =
+                decoded.frames.into_iter().map(|f| f.frame).collect();
+            tracing::debug!(reporter = %r.name(), frames = frames.len(), "own frames decoded");
+            done.push((times, frames.clone()));
+            out.insert(r.name().to_string(), frames);
+        }
+        Ok(out)
+    }
+
     /// Decode and embed one clip.
     async fn decode_and_embed(&self, up: &Upload) -> Result<Decoded, ServiceError> {
         let p = &self.pipeline;
@@ -379,13 +421,15 @@ impl Service {
             Err(_) => vlmfuse_media::Interrupt::new(),
         };
         let _stop_on_drop = interrupt.cancel_on_drop();
+        let (stop, own_limits) = (interrupt.clone(), limits.clone());
         let decoded = tokio::task::spawn_blocking(move || {
             vlmfuse_media::sample_frames_with_interrupt(&decode_path, &opts, &limits, &interrupt)
         })
         .await
         .map_err(|e| ServiceError::Internal(format!("decoding task failed: {e}")))??;
-        timings.push(("decode".into(), stage("decode", start)));
         let info = decoded.info.clone();
+        let own_frames = self.own_frames(&path, &info, &own_limits, &stop).await?;
+        timings.push(("decode".into(), stage("decode", start)));
         let clip = ClipOut {
             file_name: up.file_name.clone(),
             bytes: up.bytes,
@@ -421,6 +465,7 @@ impl Service {
                 fps: Some(info.fps),
                 width: Some(info.width),
                 height: Some(info.height),
+                own_frames,
             },
         };
         Ok(Decoded {

@@ -114,6 +114,7 @@ fn describe_dumps_what_the_model_crate_computes_on_both_fixtures() {
             "first_token_logits.npy",
             "generated_ids.json",
             "meta.json",
+            "frames.json",
         ] {
             assert!(dump.join(f).is_file(), "{name}: {f} missing");
         }
@@ -136,8 +137,13 @@ fn describe_dumps_what_the_model_crate_computes_on_both_fixtures() {
                     grid["h"].as_u64().unwrap() as usize,
                     grid["w"].as_u64().unwrap() as usize,
                 );
-                // 6 sampled frames = 3 temporal groups.
-                assert_eq!(t, 3, "{grid}");
+                // The checkpoint's sampler, not `[media] frames = 6`: 2 fps of a 2 s clip at
+                // 10 fps are 4 frames, `linspace(0, 19, 4).round()`, = 2 temporal groups.
+                assert_eq!(t, 2, "{grid}");
+                let fr = json_file(&dump.join("frames.json"));
+                assert_eq!(fr["sampler"], "checkpoint", "{fr}");
+                assert_eq!(fr["indices"], serde_json::json!([0, 6, 13, 19]), "{fr}");
+                assert_eq!(fr["media"]["frames"], 6, "{fr}");
                 assert_eq!(px.dims(), &[t * h * w, m.config().vision.patch_dim()]);
                 let seq = Sequence {
                     ids: input_ids,

@@ -1,5 +1,7 @@
-//! Qwen3-VL as a [`Family`] of the in-process reporter: frames spread over the clip with their
-//! presentation times, the model's own chat template, M-RoPE positions.
+//! Qwen3-VL as a [`Family`] of the in-process reporter: the checkpoint's own frame sampler (its
+//! video processor's `fps`, `min_frames`, `max_frames` or `num_frames`, as transformers picks
+//! frame indices) unless `[[reporter]] frames` fixes a count, the frames' presentation times,
+//! the model's own chat template, M-RoPE positions.
 
 use candle_core::{DType, Device, Tensor};
 
@@ -36,6 +38,9 @@ pub struct Qwen3VlFamily {
     pub model: Qwen3Vl,
     pub processor: Qwen3VlProcessor,
     frames: usize,
+    /// No `[[reporter]] frames`: the checkpoint's sampler picks the frames
+    /// ([`Family::frame_times`]) and every frame given is taken.
+    own_sampler: bool,
     prompt: String,
 }
 
@@ -61,6 +66,7 @@ impl Family for Qwen3VlFamily {
             model,
             processor,
             frames: opts.frames.unwrap_or(DEFAULT_QWEN_FRAMES).max(1),
+            own_sampler: opts.frames.is_none(),
             prompt: opts.prompt.clone(),
         })
     }
@@ -69,7 +75,14 @@ impl Family for Qwen3VlFamily {
         clips
             .iter()
             .map(|frames| {
-                let idx = spread_indices(frames.len(), self.frames);
+                // The sampler's frames are all taken (they number at most its `max_frames`);
+                // frames from elsewhere are spread to that many.
+                let n = if self.own_sampler {
+                    self.processor.video.config.max_frames.max(1)
+                } else {
+                    self.frames
+                };
+                let idx = spread_indices(frames.len(), n);
                 let refs: Vec<FrameRef> = idx.iter().map(|&i| frames[i].as_ref()).collect();
                 let times: Vec<f64> = idx.iter().map(|&i| frames[i].pts_s).collect();
                 self.processor.prepare_frames(&self.prompt, &refs, &times)
@@ -124,5 +137,24 @@ impl Family for Qwen3VlFamily {
     }
     fn frames(&self) -> usize {
         self.frames
+    }
+
+    /// The frames transformers' Qwen3-VL video processor samples: indices
+    /// `linspace(0, total - 1, n).round()` of the clip's `total = round(duration * fps)` frames
+    /// ([`super::VideoProcessor::sample_indices`], checked against transformers 5.23), each
+    /// asked for half a frame before its nominal time `i / fps` so that the first frame at or
+    /// after it is frame `i` itself whatever the rounding of its timestamp.
+    fn frame_times(&self, duration_s: f64, fps: f64) -> Option<Vec<f64>> {
+        let usable = |v: f64| v.is_finite() && v > 0.0;
+        if !(self.own_sampler && usable(duration_s) && usable(fps)) {
+            return None;
+        }
+        let total = ((duration_s * fps).round() as usize).max(1);
+        let idx = self.processor.video.sample_indices(total, fps);
+        Some(
+            idx.iter()
+                .map(|&i| ((i as f64 - 0.5) / fps).max(0.0))
+                .collect(),
+        )
     }
 }

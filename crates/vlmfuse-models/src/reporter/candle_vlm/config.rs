@@ -18,7 +18,8 @@ fn default_max_new_tokens() -> usize {
 fn default_prompt() -> String {
     DEFAULT_PROMPT.into()
 }
-/// Qwen3-VL's frames per clip when `frames` is unset.
+/// Qwen3-VL's frames per clip when `frames` is unset and its checkpoint's sampler cannot run
+/// (frames given without a clip to decode them from, e.g. `trace` on frames in a test).
 pub const DEFAULT_QWEN_FRAMES: usize = 8;
 
 /// One in-process VLM reporter (Qwen3-VL or VideoLLaVA), as written in the service config.
@@ -48,9 +49,12 @@ pub struct CandleVlmConfig {
     pub seed: u64,
     /// The user's question; the architecture's chat format is put around it.
     pub prompt: String,
-    /// Qwen3-VL: at most this many of the clip's sampled frames go to the model (default 8),
-    /// spread evenly, each with its presentation time (the prompt states the times). Refused for
-    /// VideoLLaVA, whose processor's `num_frames` (8) is what the model was trained with.
+    /// Qwen3-VL: unset (the default), the frames its checkpoint's video processor samples
+    /// (`fps`, `min_frames`, `max_frames` or `num_frames`, as transformers picks frame indices),
+    /// decoded from the clip at source resolution; set, at most this many of the clip's `[media]`
+    /// frames, spread evenly. Each goes with its presentation time (the prompt states the
+    /// times). Refused for VideoLLaVA, whose processor's `num_frames` (8) is what the model was
+    /// trained with.
     pub frames: Option<usize>,
 }
 

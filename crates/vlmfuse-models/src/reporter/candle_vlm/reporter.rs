@@ -242,13 +242,17 @@ impl LocalReporter for CandleVlmReporter {
         &self.cfg.name
     }
 
+    fn frame_times(&self, duration_s: f64, fps: f64) -> Option<Vec<f64>> {
+        self.family.frame_times(duration_s, fps)
+    }
+
     fn generate(
         &self,
         clip: &ClipInput,
         cancel: &AtomicBool,
     ) -> Result<ReporterOutput, ModelError> {
         let t0 = Instant::now();
-        let g = self.generate_blocking(&clip.frames, cancel)?;
+        let g = self.generate_blocking(clip.frames_for(&self.cfg.name), cancel)?;
         Ok(self.output(&g, t0))
     }
 
@@ -263,7 +267,7 @@ impl LocalReporter for CandleVlmReporter {
             return clips.iter().map(|c| self.generate(c, cancel)).collect();
         }
         let t0 = Instant::now();
-        let frames: Vec<&[Frame]> = clips.iter().map(|c| &c.frames[..]).collect();
+        let frames: Vec<&[Frame]> = clips.iter().map(|c| c.frames_for(&self.cfg.name)).collect();
         let prepared = match self.prepare(&frames) {
             Ok(p) => p,
             Err(e) => {
