@@ -170,6 +170,8 @@ pub fn run(args: DescribeArgs) -> anyhow::Result<()> {
     let rt = tokio::runtime::Runtime::new().context("starting the runtime")?;
     // The frames the in-process model took, and whether its own sampler chose them.
     let mut frames_used: Option<(bool, Arc<[Frame]>)> = None;
+    // The in-process model's end-of-sequence ids and prompt, for `--dump`.
+    let mut model_meta = serde_json::Value::Null;
     let answer = match candle {
         Some(c) => {
             let t = Instant::now();
@@ -217,6 +219,7 @@ pub fn run(args: DescribeArgs) -> anyhow::Result<()> {
                 };
             let used = own.clone().unwrap_or_else(|| frames.clone());
             frames_used = Some((own.is_some(), used.clone()));
+            model_meta = json!({"eos_ids": r.family().eos_ids(), "prompt": r.config().prompt});
             let t = Instant::now();
             let bar = spinner(args.quiet, "generating".into());
             let trace = r.trace(&used, &AtomicBool::new(false));
@@ -281,9 +284,14 @@ pub fn run(args: DescribeArgs) -> anyhow::Result<()> {
             // The frame numbers, from the timestamps at the clip's average rate.
             "indices": used.iter().map(|f| (f.pts_s * info.fps).round() as i64).collect::<Vec<_>>(),
             "sizes": used.iter().map(|f| [f.width, f.height]).collect::<Vec<_>>(),
+            // SHA-256 of each frame's RGB24 bytes, to check a reference decoded the same pixels.
+            "sha256": used.iter().map(|f| {
+                use sha2::Digest;
+                format!("{:x}", sha2::Sha256::digest(&f.rgb))
+            }).collect::<Vec<_>>(),
             "media": {"frames": cfg.media.frames, "frame_short_side": cfg.media.frame_short_side},
         });
-        let files = write_dump(dir, trace, &args, &cfg, sampled)?;
+        let files = write_dump(dir, trace, &args, &cfg, sampled, model_meta.clone())?;
         say(format!("wrote {} files to {}", files.len(), dir.display()));
     }
 
@@ -355,6 +363,7 @@ fn write_dump(
     args: &DescribeArgs,
     cfg: &Config,
     frames: serde_json::Value,
+    model: serde_json::Value,
 ) -> anyhow::Result<Vec<PathBuf>> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let mut written = Vec::new();
@@ -385,6 +394,8 @@ fn write_dump(
             "dtype": weights.as_ref().and_then(|c| c.dtype.clone()),
             "max_new_tokens": weights.as_ref().map(|c| c.max_new_tokens),
             "vocab": t.first_token_logits.len(),
+            "eos_ids": model["eos_ids"],
+            "prompt": model["prompt"],
         }),
     )?;
     let npy = |name: &str, tensor: &candle_core::Tensor| -> anyhow::Result<PathBuf> {

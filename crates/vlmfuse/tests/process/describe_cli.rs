@@ -144,6 +144,15 @@ fn describe_dumps_what_the_model_crate_computes_on_both_fixtures() {
                 assert_eq!(fr["sampler"], "checkpoint", "{fr}");
                 assert_eq!(fr["indices"], serde_json::json!([0, 6, 13, 19]), "{fr}");
                 assert_eq!(fr["media"]["frames"], 6, "{fr}");
+                let hashes = fr["sha256"].as_array().unwrap();
+                assert_eq!(hashes.len(), 4, "{fr}");
+                assert!(
+                    hashes.iter().all(|h| h.as_str().unwrap().len() == 64),
+                    "{fr}"
+                );
+                let meta = json_file(&dump.join("meta.json"));
+                assert!(!meta["eos_ids"].as_array().unwrap().is_empty(), "{meta}");
+                assert_eq!(meta["prompt"], "describe the dashcam clip", "{meta}");
                 assert_eq!(px.dims(), &[t * h * w, m.config().vision.patch_dim()]);
                 let seq = Sequence {
                     ids: input_ids,
