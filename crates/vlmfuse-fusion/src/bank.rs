@@ -70,6 +70,52 @@ unsafe fn dot_f32_avx2(a: &[f32], b: &[f32]) -> f32 {
     dot_f32_body(a, b)
 }
 
+/// One row's f32 dot product, AVX2 + FMA where the processor has them (chosen at run time).
+#[inline]
+fn dot_f32_fast(a: &[f32], b: &[f32]) -> f32 {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        // SAFETY: the features this function is compiled for were just detected.
+        return unsafe { dot_f32_avx2(a, b) };
+    }
+    dot_f32_body(a, b)
+}
+
+/// A unit-norm query rounded to f32 for a first pass, with what bounds the first pass's error:
+/// the rounding of the query itself, its norm, and the f32 accumulation.
+struct F32Query {
+    xq: Vec<f32>,
+    err: f64,
+    norm: f64,
+    acc: f64,
+}
+
+impl F32Query {
+    fn new(x: &[f64], dim: usize) -> Self {
+        let xq: Vec<f32> = x.iter().map(|&v| v as f32).collect();
+        let err = x
+            .iter()
+            .zip(&xq)
+            .map(|(&a, &b)| (a - b as f64).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        let norm = xq.iter().map(|&v| (v as f64).powi(2)).sum::<f64>().sqrt();
+        // f32 arithmetic: each product and each addition rounds by at most u relative, so the
+        // sum is off by at most (d + 2) u * ||x~_j|| * ||xq||; 4d + 16 leaves a wide margin.
+        let u = f32::EPSILON as f64 / 2.0;
+        let acc = (4 * dim + 16) as f64 * u;
+        F32Query { xq, err, norm, acc }
+    }
+
+    /// A rigorous bound on |f32 first pass - exact cosine| for an entry whose f32 copy is off
+    /// its context by `ej`.
+    #[inline]
+    fn bound(&self, ej: f64) -> f64 {
+        let xn = 1.0 + ej;
+        ej + self.err * xn + self.acc * xn * self.norm + 1e-12
+    }
+}
+
 /// Fills `out[j]` with the f32 similarity of every entry (AVX2 + FMA where the processor has
 /// them, chosen at run time; the portable loop elsewhere).
 pub(crate) fn scan_f32(mirror: &[f32], x: &[f32], dim: usize, out: &mut Vec<f32>) {
@@ -473,41 +519,15 @@ impl Bank {
         if pos.len() <= 4 * m || self.mirror.len() != self.len() * self.dim {
             return self.select(pos.iter().map(|&j| (j, self.sim(x, j))), m);
         }
-        let xq: Vec<f32> = x.iter().map(|&v| v as f32).collect();
-        let xq_err = x
-            .iter()
-            .zip(&xq)
-            .map(|(&a, &b)| (a - b as f64).powi(2))
-            .sum::<f64>()
-            .sqrt();
-        let xq_norm = xq.iter().map(|&v| (v as f64).powi(2)).sum::<f64>().sqrt();
-        let u = f32::EPSILON as f64 / 2.0;
-        let acc = (4 * self.dim + 16) as f64 * u;
+        let q = F32Query::new(x, self.dim);
         let d = self.dim;
-        let row = |j: usize| &self.mirror[j * d..(j + 1) * d];
-        let mut approx: Vec<(f64, f64)> = Vec::with_capacity(pos.len());
-        #[cfg(target_arch = "x86_64")]
-        let fast = std::arch::is_x86_feature_detected!("avx2")
-            && std::arch::is_x86_feature_detected!("fma");
-        #[cfg(not(target_arch = "x86_64"))]
-        let fast = false;
-        for &j in pos {
-            #[cfg(target_arch = "x86_64")]
-            let a = if fast {
-                // SAFETY: the features this function is compiled for were just detected.
-                unsafe { dot_f32_avx2(row(j), &xq) }
-            } else {
-                dot_f32_body(row(j), &xq)
-            };
-            #[cfg(not(target_arch = "x86_64"))]
-            let a = {
-                let _ = fast;
-                dot_f32_body(row(j), &xq)
-            };
-            let xn = 1.0 + self.mirror_err[j];
-            let bound = self.mirror_err[j] + xq_err * xn + acc * xn * xq_norm + 1e-12;
-            approx.push((a as f64, bound));
-        }
+        let approx: Vec<(f64, f64)> = pos
+            .iter()
+            .map(|&j| {
+                let a = dot_f32_fast(&self.mirror[j * d..(j + 1) * d], &q.xq);
+                (a as f64, q.bound(self.mirror_err[j]))
+            })
+            .collect();
         let mut lo: Vec<f64> = approx.iter().map(|&(a, b)| a - b).collect();
         let (_, &mut cut, _) = lo.select_nth_unstable_by(m - 1, |a, b| b.total_cmp(a));
         let survivors = pos
@@ -527,28 +547,10 @@ impl Bank {
         if n < PREFILTER_MIN || self.mirror.len() != n * self.dim {
             return None;
         }
-        let xq: Vec<f32> = x.iter().map(|&v| v as f32).collect();
-        let xq_err = x
-            .iter()
-            .zip(&xq)
-            .map(|(&a, &b)| (a - b as f64).powi(2))
-            .sum::<f64>()
-            .sqrt();
-        let xq_norm = xq.iter().map(|&v| (v as f64).powi(2)).sum::<f64>().sqrt();
+        let q = F32Query::new(x, self.dim);
         let mut approx = Vec::with_capacity(n);
-        scan_f32(&self.mirror, &xq, self.dim, &mut approx);
-        // f32 arithmetic: each product and each addition rounds by at most u relative, so the
-        // sum is off by at most (d + 2) u * ||x~_j|| * ||xq||; 4d + 16 leaves a wide margin.
-        let u = f32::EPSILON as f64 / 2.0;
-        let acc = (4 * self.dim + 16) as f64 * u;
-        let bounds = self
-            .mirror_err
-            .iter()
-            .map(|&ej| {
-                let xn = 1.0 + ej;
-                ej + xq_err * xn + acc * xn * xq_norm + 1e-12
-            })
-            .collect();
+        scan_f32(&self.mirror, &q.xq, self.dim, &mut approx);
+        let bounds = self.mirror_err.iter().map(|&ej| q.bound(ej)).collect();
         Some((approx, bounds))
     }
 

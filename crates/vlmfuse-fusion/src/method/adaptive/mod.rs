@@ -184,9 +184,9 @@ impl Tally {
 }
 
 /// The mean of two candidates' posteriors, at the mean of their thresholds.
-fn blend(a: &(Vec<f64>, Vec<f64>), b: &(Vec<f64>, Vec<f64>)) -> (Vec<f64>, Vec<f64>) {
+fn blend(qa: &[f64], ta: &[f64], qb: &[f64], tb: &[f64]) -> (Vec<f64>, Vec<f64>) {
     let mean = |x: &[f64], y: &[f64]| x.iter().zip(y).map(|(x, y)| 0.5 * (x + y)).collect();
-    (mean(&a.0, &b.0), mean(&a.1, &b.1))
+    (mean(qa, qb), mean(ta, tb))
 }
 
 /// Majority vote of a round: a label is on when MORE than half of the present reporters report
@@ -828,7 +828,7 @@ impl Adaptive {
                 initial(),
             ),
             Predictor::Paper | Predictor::Blend => {
-                let model = (self.posterior(cx, &signals), self.thresholds(cx));
+                let model = || (self.posterior(cx, &signals), self.thresholds(cx));
                 match (&self.paper, self.serving(cx)) {
                     (Some(p), Predictor::Paper) => {
                         let a = p.infer(cx, &self.pool, round);
@@ -836,9 +836,10 @@ impl Adaptive {
                     }
                     (Some(p), _) => {
                         let a = p.infer(cx, &self.pool, round);
-                        blend(&model, &(a.q, a.thresholds))
+                        let (q, t) = model();
+                        blend(&q, &t, &a.q, &a.thresholds)
                     }
-                    (None, _) => model,
+                    (None, _) => model(),
                 }
             }
             Predictor::Model => (self.posterior(cx, &signals), self.thresholds(cx)),
@@ -1273,10 +1274,7 @@ impl Adaptive {
                 let vote: Vec<bool> = vote.iter().map(|&v| v != 0).collect();
                 let (paper, mean) = match &paper_q {
                     Some(pa) => {
-                        let (q, t) = blend(
-                            &(model_q.clone(), t.clone()),
-                            &(pa.q.clone(), pa.thresholds.clone()),
-                        );
+                        let (q, t) = blend(&model_q, &t, &pa.q, &pa.thresholds);
                         let mean = q.iter().zip(&t).map(|(q, t)| q >= t).collect();
                         (pa.decisions(), mean)
                     }

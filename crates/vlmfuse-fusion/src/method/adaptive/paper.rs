@@ -47,8 +47,9 @@ pub struct PaperCandidate {
     calib: Calibrator,
     /// Sequence numbers of the latest labelled (or partly labelled) rounds, oldest first.
     recent: VecDeque<u64>,
-    /// Bumped by every [`PaperCandidate::learn`]: what [`Memo`] entries are valid for.
-    #[serde(default)]
+    /// Bumped by every [`PaperCandidate::learn`]: what [`Memo`] entries are valid for. The
+    /// cache's key, not state: a copy read back starts at 0 with an empty cache.
+    #[serde(skip)]
     version: u64,
     /// The last answer, reused when the same round is asked again with nothing changed in
     /// between (a round served by this candidate is scored on the very answer it got when its
