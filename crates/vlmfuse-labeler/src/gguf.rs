@@ -255,7 +255,7 @@ impl Inner {
             Message::new("system", &self.system),
             Message::new("user", &user_prompt(&body)),
         ];
-        self.template.render(&messages, &self.bos, &self.eos)
+        Ok(self.template.render(&messages, &self.bos, &self.eos)?)
     }
 
     /// Caches the system part of the prompt (see `llm::model`).

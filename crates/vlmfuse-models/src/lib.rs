@@ -2,6 +2,7 @@
 //! OpenAI-compatible VLMs and in-process candle VLMs), weight loading and device placement.
 //! Nothing here knows about HTTP serving or the fusion maths.
 
+pub mod chat_template;
 pub mod device;
 pub mod embed;
 mod error;

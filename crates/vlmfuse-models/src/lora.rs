@@ -169,21 +169,35 @@ pub fn merge_adapter_mapped(
     Ok(merged)
 }
 
-/// Reads `adapter_config.json` + `adapter_model.safetensors` (on CPU: they are merged once and
-/// dropped).
+/// Reads `adapter_config.json` + `adapter_model.safetensors` (or `adapter_model.bin`, what
+/// older PEFT releases write by default, as the VideoLLaMA2 repository's fine-tuning pins)
+/// on CPU: they are merged once and dropped.
 pub fn load_adapter(
     source: &WeightSource,
 ) -> Result<(LoraConfig, HashMap<String, Tensor>), ModelError> {
     let cfg: LoraConfig = source.read_json("adapter_config.json")?;
+    let bad = |path: &std::path::Path, e: candle_core::Error| ModelError::BadWeights {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    };
+    if let Some(path) = source.resolve_optional("adapter_model.safetensors")? {
+        let tensors = candle_core::safetensors::load(&path, &candle_core::Device::Cpu)
+            .map_err(|e| bad(&path, e))?;
+        return Ok((cfg, tensors));
+    }
+    if let Some(path) = source.resolve_optional("adapter_model.bin")? {
+        let tensors = candle_core::pickle::read_all(&path)
+            .map_err(|e| bad(&path, e))?
+            .into_iter()
+            .collect();
+        return Ok((cfg, tensors));
+    }
+    // Neither: the error names the file PEFT writes today.
     let path = source.resolve("adapter_model.safetensors")?;
-    let tensors =
-        candle_core::safetensors::load(&path, &candle_core::Device::Cpu).map_err(|e| {
-            ModelError::BadWeights {
-                path: path.clone(),
-                reason: e.to_string(),
-            }
-        })?;
-    Ok((cfg, tensors))
+    Err(ModelError::BadWeights {
+        path,
+        reason: "unreadable adapter".into(),
+    })
 }
 
 #[cfg(test)]

@@ -1,6 +1,6 @@
 //! What a model family gives the in-process reporter, and the table of families.
 //!
-//! A family (Qwen3-VL, VideoLLaVA; VideoLLaMA2 and VLAAD are next) is one folder under
+//! A family (Qwen3-VL, VideoLLaVA, VideoLLaMA2; VLAAD is next) is one folder under
 //! [`crate::models`] with its config, vision and text towers, its processor and a `family.rs`
 //! that implements [`Family`]: load a checkpoint, turn clips into model inputs, and the
 //! model whose [`Decoder`] steps [`crate::generate`] drives. Adding one is that folder plus one line
@@ -225,6 +225,14 @@ impl Registration {
             load: load_boxed::<F>,
         }
     }
+
+    /// `F` under another `model_type` its checkpoints carry (VideoLLaMA2 writes two).
+    pub const fn alias<F: Family>(model_type: &'static str) -> Self {
+        Self {
+            model_type,
+            load: load_boxed::<F>,
+        }
+    }
 }
 
 fn load_boxed<F: Family>(
@@ -238,6 +246,8 @@ fn load_boxed<F: Family>(
 pub const FAMILIES: &[Registration] = &[
     Registration::of::<super::qwen3_vl::Qwen3VlFamily>(),
     Registration::of::<super::video_llava::VideoLlavaFamily>(),
+    Registration::of::<super::videollama2::VideoLlama2Family>(),
+    Registration::alias::<super::videollama2::VideoLlama2Family>("videollama2_mistral"),
 ];
 
 /// The `model_type`s of [`FAMILIES`].
@@ -302,7 +312,15 @@ mod tests {
     #[test]
     fn every_family_is_registered_once() {
         let mut t = supported_model_types();
-        assert_eq!(t, vec!["qwen3_vl", "video_llava"]);
+        assert_eq!(
+            t,
+            vec![
+                "qwen3_vl",
+                "video_llava",
+                "videollama2",
+                "videollama2_mistral"
+            ]
+        );
         t.dedup();
         assert_eq!(t.len(), FAMILIES.len());
     }

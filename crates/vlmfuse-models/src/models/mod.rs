@@ -7,3 +7,4 @@
 pub mod family;
 pub mod qwen3_vl;
 pub mod video_llava;
+pub mod videollama2;

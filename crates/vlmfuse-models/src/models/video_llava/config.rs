@@ -96,7 +96,7 @@ impl VisionConfig {
         self.hidden_size / self.num_attention_heads
     }
 
-    fn check(&self) -> Result<(), ModelError> {
+    pub(crate) fn check(&self) -> Result<(), ModelError> {
         Act::from_hf(&self.hidden_act)?;
         if self.patch_size == 0 || !self.image_size.is_multiple_of(self.patch_size) {
             return Err(ModelError::BadConfig(format!(
@@ -161,6 +161,96 @@ pub struct TextConfig {
     pub rope_scaling: RopeScaling,
     pub attention_bias: bool,
     pub mlp_bias: bool,
+}
+
+impl TextConfig {
+    /// A LLaMA-style language model's config (`LlamaConfig`, or `MistralConfig` read with
+    /// [`TextConfig::mistral_json`]), checked; `types` are the `model_type`s accepted.
+    fn from_raw(raw: &RawText, types: &[&str]) -> Result<Self, ModelError> {
+        if !types.contains(&raw.model_type.as_str()) {
+            return Err(ModelError::BadConfig(format!(
+                "text_config.model_type `{}`: only {} language models are supported",
+                raw.model_type,
+                types.join(", ")
+            )));
+        }
+        if raw.pretraining_tp.unwrap_or(1) != 1 {
+            // transformers ignores it at inference too, but say so rather than surprise.
+            tracing::debug!(
+                tp = raw.pretraining_tp,
+                "pretraining_tp ignored (no effect on outputs)"
+            );
+        }
+        if raw.num_attention_heads == 0 {
+            return Err(ModelError::BadConfig(
+                "text_config: num_attention_heads is 0".into(),
+            ));
+        }
+        let kv = raw.num_key_value_heads.unwrap_or(raw.num_attention_heads);
+        if kv == 0 || !raw.num_attention_heads.is_multiple_of(kv) {
+            return Err(ModelError::BadConfig(format!(
+                "text_config: {} attention heads are not a multiple of {kv} key/value heads",
+                raw.num_attention_heads
+            )));
+        }
+        let head_dim = raw
+            .head_dim
+            .unwrap_or(raw.hidden_size / raw.num_attention_heads);
+        if head_dim == 0 || !head_dim.is_multiple_of(2) {
+            return Err(ModelError::BadConfig(format!(
+                "text_config: head_dim {head_dim} must be even for rotary embeddings"
+            )));
+        }
+        Act::from_hf(&raw.hidden_act)?;
+        let (rope_theta, rope_scaling) = rope_from(raw)?;
+        Ok(TextConfig {
+            vocab_size: raw.vocab_size,
+            hidden_size: raw.hidden_size,
+            intermediate_size: raw.intermediate_size,
+            num_hidden_layers: raw.num_hidden_layers,
+            num_attention_heads: raw.num_attention_heads,
+            num_key_value_heads: kv,
+            head_dim,
+            hidden_act: raw.hidden_act.clone(),
+            max_position_embeddings: raw.max_position_embeddings,
+            rms_norm_eps: raw.rms_norm_eps,
+            rope_theta,
+            rope_scaling,
+            attention_bias: raw.attention_bias,
+            mlp_bias: raw.mlp_bias,
+        })
+    }
+
+    /// A Mistral config at the top level of `config.json` (VideoLLaMA2's LLM, whose
+    /// `model_type` is the checkpoint's own), with `MistralConfig`'s defaults, and its
+    /// `sliding_window` (`None`: full attention).
+    pub fn mistral_json(v: &serde_json::Value) -> Result<(Self, Option<usize>), ModelError> {
+        let mut raw: RawText = serde_json::from_value(v.clone())
+            .map_err(|e| ModelError::BadConfig(format!("config.json: {e}")))?;
+        let given = |k: &str| v.get(k).is_some_and(|x| !x.is_null());
+        // MistralConfig's defaults where LlamaConfig's differ.
+        if !given("intermediate_size") {
+            raw.intermediate_size = 14336;
+        }
+        if !given("num_key_value_heads") {
+            raw.num_key_value_heads = Some(8);
+        }
+        if !given("max_position_embeddings") {
+            raw.max_position_embeddings = 4096 * 32;
+        }
+        if !given("rms_norm_eps") {
+            raw.rms_norm_eps = 1e-6;
+        }
+        raw.model_type = "mistral".into();
+        let window = match v.get("sliding_window") {
+            None => Some(4096),
+            Some(serde_json::Value::Null) => None,
+            Some(x) => Some(x.as_u64().ok_or_else(|| {
+                ModelError::BadConfig("config.json: sliding_window is not an integer".into())
+            })? as usize),
+        };
+        Ok((Self::from_raw(&raw, &["mistral"])?, window))
+    }
 }
 
 /// Raw `text_config` with `LlamaConfig`'s defaults; normalised into [`TextConfig`].
@@ -344,57 +434,7 @@ impl VideoLlavaConfig {
                 .map_err(|e| ModelError::BadConfig(format!("text_config: {e}")))?,
             None => RawText::default(),
         };
-        if raw.model_type != "llama" {
-            return Err(ModelError::BadConfig(format!(
-                "text_config.model_type `{}`: only llama language models are supported",
-                raw.model_type
-            )));
-        }
-        if raw.pretraining_tp.unwrap_or(1) != 1 {
-            // transformers ignores it at inference too, but say so rather than surprise.
-            tracing::debug!(
-                tp = raw.pretraining_tp,
-                "pretraining_tp ignored (no effect on outputs)"
-            );
-        }
-        if raw.num_attention_heads == 0 {
-            return Err(ModelError::BadConfig(
-                "text_config: num_attention_heads is 0".into(),
-            ));
-        }
-        let kv = raw.num_key_value_heads.unwrap_or(raw.num_attention_heads);
-        if kv == 0 || !raw.num_attention_heads.is_multiple_of(kv) {
-            return Err(ModelError::BadConfig(format!(
-                "text_config: {} attention heads are not a multiple of {kv} key/value heads",
-                raw.num_attention_heads
-            )));
-        }
-        let head_dim = raw
-            .head_dim
-            .unwrap_or(raw.hidden_size / raw.num_attention_heads);
-        if head_dim == 0 || !head_dim.is_multiple_of(2) {
-            return Err(ModelError::BadConfig(format!(
-                "text_config: head_dim {head_dim} must be even for rotary embeddings"
-            )));
-        }
-        Act::from_hf(&raw.hidden_act)?;
-        let (rope_theta, rope_scaling) = rope_from(&raw)?;
-        let text = TextConfig {
-            vocab_size: raw.vocab_size,
-            hidden_size: raw.hidden_size,
-            intermediate_size: raw.intermediate_size,
-            num_hidden_layers: raw.num_hidden_layers,
-            num_attention_heads: raw.num_attention_heads,
-            num_key_value_heads: kv,
-            head_dim,
-            hidden_act: raw.hidden_act.clone(),
-            max_position_embeddings: raw.max_position_embeddings,
-            rms_norm_eps: raw.rms_norm_eps,
-            rope_theta,
-            rope_scaling,
-            attention_bias: raw.attention_bias,
-            mlp_bias: raw.mlp_bias,
-        };
+        let text = TextConfig::from_raw(&raw, &["llama"])?;
 
         let id = |k: &str, alias: &str, default: u32| -> Result<u32, ModelError> {
             match field(v, k).or_else(|| field(v, alias)) {

@@ -1,0 +1,414 @@
+//! VideoLLaMA2 (DAMO-NLP-SG/VideoLLaMA2, `Videollama2MistralForCausalLM`) in process: each
+//! frame through the CLIP tower (the hidden state `mm_vision_select_layer`, CLS dropped), the
+//! spatial-temporal connector over the clip ([`connector::StcConnector`]), and the Mistral LLM
+//! over the prompt with the clip's tokens where `<video>` stood.
+//!
+//! Checkpoints load as the repository saves them: the LLM at `model.*` and `lm_head`, the tower
+//! at `model.vision_tower.vision_tower.vision_model.*` (or, when the checkpoint lacks it, from
+//! the tower named by `mm_vision_tower`), the connector at `model.mm_projector.*`. LoRA runs
+//! as the repository's fine-tuning writes them (`adapter_config.json`, `adapter_model.*` and
+//! `non_lora_trainables.bin` with the connector's trained weights) are merged at load.
+
+pub mod config;
+pub mod connector;
+mod family;
+pub mod processor;
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::VarBuilder;
+
+pub use config::VideoLlama2Config;
+pub use family::VideoLlama2Family;
+pub use processor::{VideoLlama2Processor, VISUAL_TOKEN};
+
+use crate::lora::{load_adapter, merge_adapter};
+use crate::models::video_llava::processor::{EncodedBatch, VideoPixels};
+use crate::models::video_llava::text::{KvCache, LlamaText};
+use crate::models::video_llava::vision::ClipTower;
+use crate::weights::{var_builder, WeightSource};
+use crate::ModelError;
+use connector::StcConnector;
+
+/// The tower's prefix in a VideoLLaMA2 checkpoint.
+const TOWER: &str = "model.vision_tower.vision_tower.vision_model";
+
+/// Model inputs: left-padded ids with [`VISUAL_TOKEN`] runs, and each row's clip.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelInputs {
+    pub ids: EncodedBatch,
+    pub videos: Vec<VideoPixels>,
+}
+
+/// How to load a checkpoint.
+#[derive(Debug, Clone)]
+pub struct LoadOptions {
+    pub dtype: DType,
+    pub device: Device,
+    pub adapter: Option<WeightSource>,
+}
+
+impl Default for LoadOptions {
+    fn default() -> Self {
+        Self {
+            dtype: DType::F32,
+            device: Device::Cpu,
+            adapter: None,
+        }
+    }
+}
+
+/// Where the tower's config, processor and (if the checkpoint lacks them) weights come from.
+pub struct Tower {
+    pub config: serde_json::Value,
+    pub preprocessor: serde_json::Value,
+    pub source: Option<WeightSource>,
+}
+
+/// Resolves `mm_vision_tower`: a directory, else the hub repo of that name (through the same
+/// cache, endpoint and offline setting as the checkpoint), else the built-in config of the
+/// tower the released checkpoints name.
+pub fn resolve_tower(name: &str, checkpoint: &WeightSource) -> Result<Tower, ModelError> {
+    let dir = Path::new(name);
+    let source = if dir.join("config.json").is_file() {
+        WeightSource::local(dir)
+    } else {
+        match checkpoint {
+            WeightSource::Hub {
+                cache_dir,
+                endpoint,
+                offline,
+                ..
+            } => WeightSource::Hub {
+                hub: name.to_string(),
+                revision: "main".into(),
+                cache_dir: cache_dir.clone(),
+                endpoint: endpoint.clone(),
+                offline: *offline,
+            },
+            WeightSource::Local { .. } => WeightSource::hub(name, "main"),
+        }
+    };
+    let read = |s: &WeightSource| -> Result<(serde_json::Value, serde_json::Value), ModelError> {
+        Ok((
+            s.read_json("config.json")?,
+            s.read_json("preprocessor_config.json")?,
+        ))
+    };
+    match read(&source) {
+        Ok((config, preprocessor)) => Ok(Tower {
+            config,
+            preprocessor,
+            source: Some(source),
+        }),
+        Err(e) => match config::known_tower(name) {
+            Some((config, preprocessor)) => {
+                tracing::info!(tower = name, error = %e,
+                    "vision tower config not found; using the built-in config of this tower");
+                Ok(Tower {
+                    config,
+                    preprocessor,
+                    source: None,
+                })
+            }
+            None => Err(ModelError::BadConfig(format!(
+                "mm_vision_tower `{name}`: neither a directory with config.json and \
+                 preprocessor_config.json nor a readable hub repo ({e})"
+            ))),
+        },
+    }
+}
+
+/// A loaded VideoLLaMA2.
+pub struct VideoLlama2 {
+    cfg: VideoLlama2Config,
+    tower: ClipTower,
+    connector: StcConnector,
+    text: LlamaText,
+    select: usize,
+    device: Device,
+    dtype: DType,
+    merged_lora: Vec<String>,
+}
+
+fn bad_weights(path: &Path) -> impl Fn(candle_core::Error) -> ModelError + '_ {
+    move |e| ModelError::BadWeights {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    }
+}
+
+/// Reads a PyTorch `.bin` (pickle) state dict.
+fn read_bin(path: &Path) -> Result<HashMap<String, Tensor>, ModelError> {
+    candle_core::pickle::read_all(path)
+        .map(|v| v.into_iter().collect())
+        .map_err(|e| ModelError::BadWeights {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        })
+}
+
+/// A LoRA run's `non_lora_trainables.bin` keys (`base_model.model.model.mm_projector.*`) as
+/// the repository's loader maps them (`base_model.` then a doubled `model.` dropped).
+pub fn non_lora_name(k: &str) -> String {
+    let k = k.strip_prefix("base_model.").unwrap_or(k);
+    match k.strip_prefix("model.") {
+        Some(rest) if rest.starts_with("model.") || rest.starts_with("lm_head") => rest.to_string(),
+        _ => k.to_string(),
+    }
+}
+
+impl VideoLlama2 {
+    /// Reads `config.json`, the tower's config and the weights (merging the adapter, if any).
+    /// Blocking; call it at start-up.
+    pub fn load(source: &WeightSource, opts: &LoadOptions) -> Result<(Self, Tower), ModelError> {
+        let raw: serde_json::Value = source.read_json("config.json")?;
+        let cfg = VideoLlama2Config::from_json(&raw)?;
+        let tower_src = resolve_tower(&cfg.vision_tower, source)?;
+        let cfg = cfg.with_vision(&tower_src.config)?;
+        let files = source.safetensors_files()?;
+        let first = files.first().cloned().unwrap_or_default();
+        let mut merged_lora = Vec::new();
+        let vb = match &opts.adapter {
+            None => var_builder(&files, opts.dtype, &opts.device)?,
+            Some(adapter) => {
+                let mut base = HashMap::new();
+                for f in &files {
+                    let t = candle_core::safetensors::load(f, &Device::Cpu).map_err(|e| {
+                        ModelError::BadWeights {
+                            path: f.clone(),
+                            reason: e.to_string(),
+                        }
+                    })?;
+                    base.extend(t);
+                }
+                // The connector (and anything else trained in full) comes with the run.
+                if let Some(p) = adapter.resolve_optional("non_lora_trainables.bin")? {
+                    let extra = read_bin(&p)?;
+                    let n = extra.len();
+                    for (k, t) in extra {
+                        base.insert(non_lora_name(&k), t);
+                    }
+                    tracing::info!(tensors = n, "loaded non_lora_trainables.bin");
+                }
+                let (lcfg, lt) = load_adapter(adapter)?;
+                merged_lora = merge_adapter(&mut base, &lt, &lcfg).map_err(|e| match e {
+                    ModelError::BadWeights { reason, .. } => ModelError::BadWeights {
+                        path: PathBuf::from(adapter.describe()),
+                        reason,
+                    },
+                    other => other,
+                })?;
+                tracing::info!(adapter = %adapter.describe(), modules = merged_lora.len(),
+                    "merged LoRA adapter into VideoLLaMA2");
+                let base = base
+                    .into_iter()
+                    .map(|(k, t)| {
+                        let t = if t.dtype().is_float() {
+                            t.to_dtype(opts.dtype)?
+                        } else {
+                            t
+                        };
+                        Ok((k, t.to_device(&opts.device)?))
+                    })
+                    .collect::<Result<HashMap<_, _>, candle_core::Error>>()?;
+                VarBuilder::from_tensors(base, opts.dtype, &opts.device)
+            }
+        };
+        let err = bad_weights(&first);
+        let select = cfg.select_index()?;
+        let probe = format!("{TOWER}.embeddings.patch_embedding.weight");
+        let tower = if vb.contains_tensor(&probe) {
+            ClipTower::load(vb.pp(TOWER), &cfg.vision, select).map_err(&err)?
+        } else {
+            let ts = tower_src
+                .source
+                .as_ref()
+                .ok_or_else(|| ModelError::BadWeights {
+                    path: first.clone(),
+                    reason: format!(
+                        "no `{probe}` in the checkpoint and no weights for the tower `{}`",
+                        cfg.vision_tower
+                    ),
+                })?;
+            let tf = ts.safetensors_files()?;
+            let tvb = var_builder(&tf, opts.dtype, &opts.device)?;
+            tracing::info!(tower = %ts.describe(), "vision tower weights from the tower's own checkpoint");
+            ClipTower::load(tvb.pp("vision_model"), &cfg.vision, select).map_err(bad_weights(
+                tf.first().map(|p| p.as_path()).unwrap_or(&first),
+            ))?
+        };
+        let connector = StcConnector::load(vb.pp("model.mm_projector"), &cfg).map_err(&err)?;
+        let head = if cfg.tie_word_embeddings {
+            None
+        } else if vb.contains_tensor("lm_head.weight") {
+            Some(vb.pp("lm_head"))
+        } else {
+            return Err(ModelError::BadWeights {
+                path: first.clone(),
+                reason: "no `lm_head.weight` and tie_word_embeddings is false".into(),
+            });
+        };
+        let text = LlamaText::load(vb.pp("model"), head, &cfg.text).map_err(&err)?;
+        Ok((
+            Self {
+                cfg,
+                tower,
+                connector,
+                text,
+                select,
+                device: opts.device.clone(),
+                dtype: opts.dtype,
+                merged_lora,
+            },
+            tower_src,
+        ))
+    }
+
+    pub fn config(&self) -> &VideoLlama2Config {
+        &self.cfg
+    }
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+    pub fn dtype(&self) -> DType {
+        self.dtype
+    }
+    pub fn merged_lora_keys(&self) -> &[String] {
+        &self.merged_lora
+    }
+    pub fn new_cache(&self, capacity: usize) -> KvCache {
+        self.text.new_cache(capacity)
+    }
+
+    /// Visual tokens of each clip, `[Σ tokens, hidden]`: every frame in one tower pass, then
+    /// the connector per clip.
+    pub fn video_features(&self, videos: &[VideoPixels]) -> Result<Tensor, ModelError> {
+        let s = self.cfg.vision.image_size;
+        let g = self.cfg.grid();
+        let mut out = Vec::with_capacity(videos.len());
+        for v in videos {
+            if v.height != s || v.width != s {
+                return Err(ModelError::InvalidInput(format!(
+                    "a clip preprocessed to {}x{}, but the tower takes {s}x{s} (processor crop \
+                     size and the tower's image_size disagree)",
+                    v.width, v.height
+                )));
+            }
+            let px = Tensor::from_slice(&v.data, (v.frames, 3, s, s), &self.device)?;
+            let hs = self
+                .tower
+                .hidden_states(&px, &[self.select])?
+                .pop()
+                .expect("one hidden state");
+            let hs = match self.cfg.select_feature {
+                config::SelectFeature::Patch => hs.narrow(1, 1, g * g)?,
+                config::SelectFeature::ClsPatch => {
+                    return Err(ModelError::BadConfig(
+                        "mm_vision_select_feature = cls_patch leaves no square grid for the \
+                         STC connector"
+                            .into(),
+                    ))
+                }
+            };
+            let x = hs.reshape((1, v.frames, g, g, self.cfg.mm_hidden_size))?;
+            let f = self.connector.forward(&x)?;
+            out.push(f.squeeze(0)?);
+        }
+        Ok(Tensor::cat(&out, 0)?)
+    }
+
+    /// Input embeddings with the [`VISUAL_TOKEN`] positions replaced, in order, by the clips'
+    /// tokens.
+    pub fn input_embeddings(&self, inputs: &ModelInputs) -> Result<Tensor, ModelError> {
+        let (b, t) = (inputs.ids.batch(), inputs.ids.seq_len());
+        if b == 0 || t == 0 {
+            return Err(ModelError::InvalidInput("an empty prompt".into()));
+        }
+        let vocab = self.cfg.text.vocab_size as u32;
+        let flat: Vec<u32> = inputs.ids.input_ids.iter().flatten().copied().collect();
+        if let Some(bad) = flat.iter().find(|&&i| i >= vocab && i != VISUAL_TOKEN) {
+            return Err(ModelError::InvalidInput(format!(
+                "token id {bad} is outside the vocabulary ({vocab})"
+            )));
+        }
+        let text_ids: Vec<u32> = flat
+            .iter()
+            .map(|&i| if i == VISUAL_TOKEN { 0 } else { i })
+            .collect();
+        let hid = self.cfg.text.hidden_size;
+        let ids = Tensor::from_vec(text_ids, (b, t), &self.device)?;
+        let emb = self.text.embed(&ids)?.reshape((b * t, hid))?;
+        let nv = flat.iter().filter(|&&i| i == VISUAL_TOKEN).count();
+        if nv == 0 {
+            if !inputs.videos.is_empty() {
+                return Err(ModelError::InvalidInput(
+                    "pixels given but the prompt has no visual tokens".into(),
+                ));
+            }
+            return Ok(emb.reshape((b, t, hid))?);
+        }
+        let f = self.video_features(&inputs.videos)?.to_dtype(self.dtype)?;
+        if f.dim(0)? != nv {
+            return Err(ModelError::InvalidInput(format!(
+                "clip features and visual tokens do not match: {nv} tokens, {} features",
+                f.dim(0)?
+            )));
+        }
+        let mut k = 0usize;
+        let src: Vec<u32> = flat
+            .iter()
+            .enumerate()
+            .map(|(p, &id)| {
+                if id == VISUAL_TOKEN {
+                    k += 1;
+                    (b * t + k - 1) as u32
+                } else {
+                    p as u32
+                }
+            })
+            .collect();
+        let table = Tensor::cat(&[emb, f], 0)?;
+        let src = Tensor::from_vec(src, b * t, &self.device)?;
+        Ok(table.index_select(&src, 0)?.reshape((b, t, hid))?)
+    }
+
+    fn check_window(&self, len: usize) -> Result<(), ModelError> {
+        match self.cfg.sliding_window {
+            Some(w) if len > w => Err(ModelError::InvalidInput(format!(
+                "{len} positions exceed the LLM's sliding_window {w} (sliding-window attention \
+                 is not implemented in process)"
+            ))),
+            _ => Ok(()),
+        }
+    }
+
+    /// The whole prompt of every row in one causal pass; logits of each row's last token.
+    pub fn prefill(&self, inputs: &ModelInputs, cache: &mut KvCache) -> Result<Tensor, ModelError> {
+        cache.reset();
+        self.check_window(inputs.ids.seq_len())?;
+        let emb = self.input_embeddings(inputs)?;
+        Ok(self.text.forward(&emb, &inputs.ids.attention_mask, cache)?)
+    }
+
+    /// One token per row; the next logits.
+    pub fn step(&self, tokens: &[u32], cache: &mut KvCache) -> Result<Tensor, ModelError> {
+        if cache.is_empty() {
+            return Err(ModelError::InvalidInput("step before prefill".into()));
+        }
+        if tokens.len() != cache.batch() {
+            return Err(ModelError::InvalidInput(format!(
+                "{} tokens for a batch of {}",
+                tokens.len(),
+                cache.batch()
+            )));
+        }
+        self.check_window(cache.len() + 1)?;
+        let ids = Tensor::from_vec(tokens.to_vec(), (tokens.len(), 1), &self.device)?;
+        let emb = self.text.embed(&ids)?;
+        let valid = vec![vec![true]; tokens.len()];
+        Ok(self.text.forward(&emb, &valid, cache)?)
+    }
+}
