@@ -197,10 +197,16 @@ pub fn run(args: DescribeArgs) -> anyhow::Result<()> {
             let own =
                 match vlmfuse_models::LocalReporter::frame_times(&r, info.duration_s, info.fps) {
                     Some(times) => {
+                        let size = match vlmfuse_models::LocalReporter::frame_size(&r) {
+                            Some((width, height)) => {
+                                vlmfuse_media::FrameSize::Exact { width, height }
+                            }
+                            None => vlmfuse_media::FrameSize::Native,
+                        };
                         let d = vlmfuse_media::sample_frames_at(
                             &args.clip,
                             &times,
-                            vlmfuse_media::FrameSize::Native,
+                            size,
                             &cfg.media.limits(),
                             &vlmfuse_media::Interrupt::new(),
                         )

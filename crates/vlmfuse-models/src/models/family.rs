@@ -1,6 +1,6 @@
 //! What a model family gives the in-process reporter, and the table of families.
 //!
-//! A family (Qwen3-VL, VideoLLaVA, VideoLLaMA2; VLAAD is next) is one folder under
+//! A family (Qwen3-VL, VideoLLaVA, VideoLLaMA2, VLAAD) is one folder under
 //! [`crate::models`] with its config, vision and text towers, its processor and a `family.rs`
 //! that implements [`Family`]: load a checkpoint, turn clips into model inputs, and the
 //! model whose [`Decoder`] steps [`crate::generate`] drives. Adding one is that folder plus one line
@@ -81,6 +81,11 @@ pub trait Family: Send + Sync + Sized + 'static {
     fn frame_times(&self, _duration_s: f64, _fps: f64) -> Option<Vec<f64>> {
         None
     }
+    /// The `(width, height)` the checkpoint's own decoder scales those frames to while
+    /// decoding (VLAAD's decord decodes at the model's input size); `None`: source size.
+    fn frame_size(&self) -> Option<(u32, u32)> {
+        None
+    }
 }
 
 /// A batch prepared by some family, its type erased so the reporter holds one kind of value.
@@ -134,6 +139,8 @@ pub trait AnyFamily: Send + Sync {
     fn frames(&self) -> usize;
     /// [`Family::frame_times`].
     fn frame_times(&self, duration_s: f64, fps: f64) -> Option<Vec<f64>>;
+    /// [`Family::frame_size`].
+    fn frame_size(&self) -> Option<(u32, u32)>;
     /// The concrete family, for tests and tools that need its model or processor.
     fn as_any(&self) -> &dyn Any;
 }
@@ -204,6 +211,9 @@ impl<F: Family> AnyFamily for F {
     fn frame_times(&self, duration_s: f64, fps: f64) -> Option<Vec<f64>> {
         Family::frame_times(self, duration_s, fps)
     }
+    fn frame_size(&self) -> Option<(u32, u32)> {
+        Family::frame_size(self)
+    }
     fn as_any(&self) -> &dyn Any {
         self
     }
@@ -248,6 +258,8 @@ pub const FAMILIES: &[Registration] = &[
     Registration::of::<super::video_llava::VideoLlavaFamily>(),
     Registration::of::<super::videollama2::VideoLlama2Family>(),
     Registration::alias::<super::videollama2::VideoLlama2Family>("videollama2_mistral"),
+    Registration::of::<super::vlaad::VlaadFamily>(),
+    Registration::alias::<super::vlaad::VlaadFamily>("video_llama"),
 ];
 
 /// The `model_type`s of [`FAMILIES`].

@@ -8,3 +8,4 @@ pub mod family;
 pub mod qwen3_vl;
 pub mod video_llava;
 pub mod videollama2;
+pub mod vlaad;

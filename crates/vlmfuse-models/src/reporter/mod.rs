@@ -97,6 +97,12 @@ pub trait Reporter: Send + Sync {
         None
     }
 
+    /// The `(width, height)` those frames are decoded at (the checkpoint's decoder scales
+    /// while decoding); `None`: the source size.
+    fn frame_size(&self) -> Option<(u32, u32)> {
+        None
+    }
+
     /// Several clips of one request, one outcome per clip in order. The default runs them
     /// concurrently (a remote server batches on its side); an in-process model runs them as
     /// one batch.
@@ -118,6 +124,10 @@ pub trait LocalReporter: Send + Sync + 'static {
     fn name(&self) -> &str;
     /// [`Reporter::frame_times`].
     fn frame_times(&self, _duration_s: f64, _fps: f64) -> Option<Vec<f64>> {
+        None
+    }
+    /// [`Reporter::frame_size`].
+    fn frame_size(&self) -> Option<(u32, u32)> {
         None
     }
     fn generate(&self, clip: &ClipInput, cancel: &AtomicBool)
@@ -142,6 +152,10 @@ impl<B: LocalReporter + ?Sized> Reporter for BackendPool<B> {
 
     fn frame_times(&self, duration_s: f64, fps: f64) -> Option<Vec<f64>> {
         self.backend().frame_times(duration_s, fps)
+    }
+
+    fn frame_size(&self) -> Option<(u32, u32)> {
+        self.backend().frame_size()
     }
 
     fn run<'a>(&'a self, clip: &'a ClipInput) -> BoxFuture<'a, Result<ReporterOutput, ModelError>> {

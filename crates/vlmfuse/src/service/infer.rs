@@ -373,13 +373,21 @@ impl Service {
     ) -> Result<std::collections::BTreeMap<String, Arc<[vlmfuse_models::Frame]>>, ServiceError>
     {
         let mut out = std::collections::BTreeMap::new();
-        let mut done: Vec<(Vec<f64>, Arc<[vlmfuse_models::Frame]>)> = Vec::new();
+        let mut done: Vec<(
+            Vec<f64>,
+            vlmfuse_media::FrameSize,
+            Arc<[vlmfuse_models::Frame]>,
+        )> = Vec::new();
         for rr in &self.pipeline.reporters {
             let r = &rr.reporter;
             let Some(times) = r.frame_times(info.duration_s, info.fps) else {
                 continue;
             };
-            if let Some((_, f)) = done.iter().find(|(t, _)| *t == times) {
+            let size = match r.frame_size() {
+                Some((width, height)) => vlmfuse_media::FrameSize::Exact { width, height },
+                None => vlmfuse_media::FrameSize::Native,
+            };
+            if let Some((_, _, f)) = done.iter().find(|(t, z, _)| *t == times && *z == size) {
                 out.insert(r.name().to_string(), f.clone());
                 continue;
             }
@@ -390,14 +398,14 @@ impl Service {
                 times.clone(),
             );
             let decoded = tokio::task::spawn_blocking(move || {
-                vlmfuse_media::sample_frames_at(&p, &t, vlmfuse_media::FrameSize::Native, &l, &s)
+                vlmfuse_media::sample_frames_at(&p, &t, size, &l, &s)
             })
             .await
             .map_err(|e| ServiceError::Internal(format!("decoding task failed: {e}")))??;
             let frames: Arc<[vlmfuse_models::Frame]> =
                 decoded.frames.into_iter().map(|f| f.frame).collect();
             tracing::debug!(reporter = %r.name(), frames = frames.len(), "own frames decoded");
-            done.push((times, frames.clone()));
+            done.push((times, size, frames.clone()));
             out.insert(r.name().to_string(), frames);
         }
         Ok(out)

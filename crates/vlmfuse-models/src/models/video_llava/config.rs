@@ -221,6 +221,14 @@ impl TextConfig {
         })
     }
 
+    /// A LLaMA config at the top level of a checkpoint's `config.json` (`LlamaConfig`'s
+    /// defaults), as a LLaMA directory has it.
+    pub fn llama_json(v: &serde_json::Value) -> Result<Self, ModelError> {
+        let raw: RawText = serde_json::from_value(v.clone())
+            .map_err(|e| ModelError::BadConfig(format!("LLaMA config.json: {e}")))?;
+        Self::from_raw(&raw, &["llama"])
+    }
+
     /// A Mistral config at the top level of `config.json` (VideoLLaMA2's LLM, whose
     /// `model_type` is the checkpoint's own), with `MistralConfig`'s defaults, and its
     /// `sliding_window` (`None`: full attention).

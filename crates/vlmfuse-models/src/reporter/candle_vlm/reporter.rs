@@ -246,6 +246,10 @@ impl LocalReporter for CandleVlmReporter {
         self.family.frame_times(duration_s, fps)
     }
 
+    fn frame_size(&self) -> Option<(u32, u32)> {
+        self.family.frame_size()
+    }
+
     fn generate(
         &self,
         clip: &ClipInput,
