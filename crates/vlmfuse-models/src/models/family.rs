@@ -330,7 +330,9 @@ mod tests {
                 "qwen3_vl",
                 "video_llava",
                 "videollama2",
-                "videollama2_mistral"
+                "videollama2_mistral",
+                "vlaad",
+                "video_llama"
             ]
         );
         t.dedup();
