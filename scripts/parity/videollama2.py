@@ -85,7 +85,10 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("root")
     ap.add_argument("--repo", required=True)
-    ap.add_argument("--bench", action="store_true")
+    ap.add_argument("--bench", action="store_true", help="time the reference on the --mid fixture")
+    ap.add_argument("--new-tokens", type=int, default=32)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=0)
     args = ap.parse_args()
     stub_modules()
     sys.path.insert(0, args.repo)
@@ -110,7 +113,7 @@ def main():
     from videollama2.model import Videollama2MistralForCausalLM
 
     torch.manual_seed(0)
-    torch.set_num_threads(max(1, os.cpu_count() or 1))
+    torch.set_num_threads(args.threads or max(1, os.cpu_count() or 1))
     root = args.root
     clips = load_clips(os.path.join(root, "frames"))
 
@@ -188,20 +191,36 @@ def main():
         return first, got, length - NEW_TOKENS
 
     if args.bench:
+        # examples/family_bench.rs's protocol: the landscape clip, "describe"; TTFT from decoded
+        # frames to the first token; then exactly --new-tokens greedy tokens (no EOS).
         tok, model = load("mistral-base")
         clip = clips["landscape"]
-        video, _ = video_tensor(model, clip, "pad")
-        _, ids = prompt_ids(tok, model, PROMPTS["describe"])
-        mask = ids.ne(tok.pad_token_id).long()
+
+        def first():
+            t0 = time.perf_counter()
+            video, _ = video_tensor(model, clip, "pad")
+            _, ids = prompt_ids(tok, model, PROMPTS["describe"])
+            mask = ids.ne(tok.pad_token_id).long()
+            out = model(input_ids=ids, attention_mask=mask, images=[(video, "video")], use_cache=True)
+            nxt = out.logits[:, -1].argmax(-1)
+            return time.perf_counter() - t0, out, nxt
+
         with torch.no_grad():
-            for _ in range(2):
-                model(input_ids=ids, attention_mask=mask, images=[(video, "video")])
-            t = time.perf_counter()
-            reps = 10
-            for _ in range(reps):
-                model(input_ids=ids, attention_mask=mask, images=[(video, "video")])
-            pre = (time.perf_counter() - t) / reps
-        print(json.dumps({"reference_prefill_ms": pre * 1e3, "torch_threads": torch.get_num_threads()}))
+            first()
+            ttft = min(first()[0] for _ in range(args.repeats))
+            _, out, nxt = first()
+            past, length = out.past_key_values, out.logits.shape[1]
+            t0 = time.perf_counter()
+            for _ in range(args.new_tokens - 1):
+                length += 1
+                out = model(input_ids=nxt[:, None], attention_mask=torch.ones(1, length, dtype=torch.long),
+                            past_key_values=past, use_cache=True)
+                past, nxt = out.past_key_values, out.logits[:, -1].argmax(-1)
+            tps = (args.new_tokens - 1) / (time.perf_counter() - t0)
+        print(json.dumps({"impl": "VideoLLaMA2 repository", "transformers": transformers.__version__,
+                          "torch": torch.__version__, "ttft_s": ttft, "decode_tok_s": tps,
+                          "prompt_tokens": length - args.new_tokens + 1,
+                          "threads": torch.get_num_threads()}))
         return
 
     pre = {"transformers": transformers.__version__, "torch": torch.__version__, "clips": {}}

@@ -23,9 +23,19 @@ const ADAPTER_SEED: u64 = 23;
 
 fn main() {
     let Some(dir) = std::env::args().nth(1).map(PathBuf::from) else {
-        eprintln!("usage: videollama2_fixture DIR");
+        eprintln!("usage: videollama2_fixture DIR [--mid]");
         std::process::exit(2);
     };
+    if std::env::args().any(|a| a == "--mid") {
+        // The benchmark's checkpoint only (examples/family_bench.rs).
+        let r = TinyVideoLlama2::mid().write(&dir.join("mistral-base"), MODEL_SEED);
+        if let Err(e) = r.and_then(|_| write_parity_frames(&dir.join("frames"))) {
+            eprintln!("error: {e}");
+            std::process::exit(1);
+        }
+        println!("wrote {}", dir.display());
+        return;
+    }
     let run = || -> anyhow::Result<()> {
         let base = TinyVideoLlama2::default();
         base.write(&dir.join("mistral-base"), MODEL_SEED)?;

@@ -19,11 +19,16 @@ const ADAPTER_SEED: u64 = 29;
 
 fn main() {
     let Some(dir) = std::env::args().nth(1).map(PathBuf::from) else {
-        eprintln!("usage: vlaad_fixture DIR");
+        eprintln!("usage: vlaad_fixture DIR [--mid]");
         std::process::exit(2);
     };
+    let mid = std::env::args().any(|a| a == "--mid");
     let run = || -> anyhow::Result<()> {
-        let t = TinyVlaad::default();
+        let t = if mid {
+            TinyVlaad::mid()
+        } else {
+            TinyVlaad::default()
+        };
         t.write(&dir.join("release"), MODEL_SEED)?;
         t.write_lora_adapter(&dir.join("lora"), 4, 8.0, ADAPTER_SEED)?;
         Ok(())

@@ -52,6 +52,9 @@ pub struct GenerateOptions {
     pub seed: u64,
     /// Keep the logits after the prompt ([`Generated::first_logits`]).
     pub keep_first_logits: bool,
+    /// Keep the logits each generated token was chosen from ([`Generated::step_logits`]);
+    /// `vocab` floats per token and row, so for dumps and tests, not for serving.
+    pub keep_step_logits: bool,
 }
 
 impl GenerateOptions {
@@ -64,6 +67,7 @@ impl GenerateOptions {
             top_p: None,
             seed: 0,
             keep_first_logits: false,
+            keep_step_logits: false,
         }
     }
 
@@ -81,6 +85,9 @@ pub struct Generated {
     pub stop: Vec<Option<u32>>,
     /// Per row, the next-token logits after the prompt (empty unless asked for).
     pub first_logits: Vec<Vec<f32>>,
+    /// Per row, the logits each of its tokens (the stop token included) was chosen from, in
+    /// order (empty unless asked for).
+    pub step_logits: Vec<Vec<Vec<f32>>>,
     /// Prefill of the whole batch (vision tower included).
     pub prefill: Duration,
     /// Every step after the prefill.
@@ -129,6 +136,7 @@ pub fn generate_with<D: Decoder>(
         tokens: vec![Vec::new(); rows],
         stop: vec![None; rows],
         first_logits: Vec::new(),
+        step_logits: Vec::new(),
         prefill: Duration::ZERO,
         decode: Duration::ZERO,
     };
@@ -152,9 +160,20 @@ pub fn generate_with<D: Decoder>(
             .collect()
     };
     let mut done = vec![false; rows];
+    if opts.keep_step_logits {
+        out.step_logits = vec![Vec::new(); rows];
+    }
     loop {
         if is_cancelled() {
             return Err(cancelled());
+        }
+        if opts.keep_step_logits {
+            let all = logits.to_vec2::<f32>()?;
+            for (r, row) in all.into_iter().enumerate() {
+                if !done[r] {
+                    out.step_logits[r].push(row);
+                }
+            }
         }
         let next: Vec<u32> = if samplers.is_empty() {
             argmax_rows(&logits)?

@@ -29,8 +29,11 @@ pub struct DescribeArgs {
     #[arg(long)]
     pub reporter: String,
     /// Also write the in-process model's inputs and outputs here: `input_ids.json`,
-    /// `pixel_values.npy`, `grid.json`, `first_token_logits.npy`, `generated_ids.json` and
-    /// `meta.json` (created if missing). Only for `kind = "candle"` reporters.
+    /// `pixel_values.npy`, `grid.json`, `first_token_logits.npy`, `generated_ids.json`,
+    /// `step_logits.npy` (`[tokens, vocab]`: the logits each generated token, the stop token
+    /// included, was chosen from), `generated_steps.json` (each token's logit and
+    /// log-probability), `frames.json` and `meta.json` (created if missing). Only for
+    /// `kind = "candle"` reporters.
     #[arg(long)]
     pub dump: Option<PathBuf>,
     /// Print one JSON object instead of the readable report.
@@ -420,5 +423,40 @@ fn write_dump(
         &candle_core::Device::Cpu,
     )?;
     written.push(npy("first_token_logits.npy", &logits)?);
+    if !t.step_logits.is_empty() {
+        // One row per generated token (the stop token's too): the distribution it was picked
+        // from, and the picked token's logit and log-probability in generated_steps.json.
+        let vocab = t.step_logits[0].len();
+        let flat: Vec<f32> = t.step_logits.iter().flatten().copied().collect();
+        let steps = candle_core::Tensor::from_vec(
+            flat,
+            (t.step_logits.len(), vocab),
+            &candle_core::Device::Cpu,
+        )?;
+        written.push(npy("step_logits.npy", &steps)?);
+        let mut ids = t.generation.tokens.clone();
+        ids.extend(t.stop);
+        let rows: Vec<serde_json::Value> = t
+            .step_logits
+            .iter()
+            .zip(&ids)
+            .enumerate()
+            .map(|(i, (row, &id))| {
+                let max = row.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+                let lse = max as f64
+                    + row
+                        .iter()
+                        .map(|&x| ((x - max) as f64).exp())
+                        .sum::<f64>()
+                        .ln();
+                let logit = row.get(id as usize).copied().unwrap_or(f32::NAN);
+                json!({"step": i, "id": id, "logit": logit, "logprob": logit as f64 - lse})
+            })
+            .collect();
+        let p = dir.join("generated_steps.json");
+        std::fs::write(&p, serde_json::to_string_pretty(&json!(rows))? + "\n")
+            .with_context(|| format!("writing {}", p.display()))?;
+        written.push(p);
+    }
     Ok(written)
 }

@@ -16,7 +16,7 @@ use vlmfuse_models::models::video_llava::{
 use vlmfuse_models::WeightSource;
 use vlmfuse_testkit::clips::h264_clip;
 use vlmfuse_testkit::server::{FakeOpenAi, LABELER_LABELS};
-use vlmfuse_testkit_models::fixtures::{TinyQwen3Vl, TinyVideoLlava};
+use vlmfuse_testkit_models::fixtures::{TinyQwen3Vl, TinyVideoLlama2, TinyVideoLlava, TinyVlaad};
 
 const MAX_NEW: usize = 6;
 
@@ -28,6 +28,8 @@ struct Setup {
     clip: std::path::PathBuf,
     qwen: std::path::PathBuf,
     llava: std::path::PathBuf,
+    llama2: std::path::PathBuf,
+    vlaad: std::path::PathBuf,
 }
 
 fn setup() -> Setup {
@@ -38,8 +40,14 @@ fn setup() -> Setup {
     TinyQwen3Vl::default().write(&qwen, 7).unwrap();
     let llava = dir.join("llava");
     TinyVideoLlava::default().write(&llava, 7).unwrap();
-    let mut cfg = String::from("reporters = [\"q\", \"v\", \"remote\"]\n\n[media]\nframes = 6\n\n");
-    for (name, d) in [("q", &qwen), ("v", &llava)] {
+    let llama2 = dir.join("videollama2");
+    TinyVideoLlama2::default().write(&llama2, 5).unwrap();
+    let vlaad = dir.join("vlaad");
+    TinyVlaad::default().write(&vlaad, 9).unwrap();
+    let mut cfg = String::from(
+        "reporters = [\"q\", \"v\", \"l2\", \"a\", \"remote\"]\n\n[media]\nframes = 6\n\n",
+    );
+    for (name, d) in [("q", &qwen), ("v", &llava), ("l2", &llama2), ("a", &vlaad)] {
         cfg += &format!(
             "[[reporter]]\nkind = \"candle\"\nname = \"{name}\"\nweights = {{ path = {d:?} }}\n\
              max_new_tokens = {MAX_NEW}\nprompt = \"describe the dashcam clip\"\n\n"
@@ -58,6 +66,8 @@ fn setup() -> Setup {
         clip,
         qwen,
         llava,
+        llama2,
+        vlaad,
     }
 }
 
@@ -115,9 +125,12 @@ fn describe_dumps_what_the_model_crate_computes_on_both_fixtures() {
             "generated_ids.json",
             "meta.json",
             "frames.json",
+            "step_logits.npy",
+            "generated_steps.json",
         ] {
             assert!(dump.join(f).is_file(), "{name}: {f} missing");
         }
+        check_steps(&dump);
         let input_ids = ids(&json_file(&dump.join("input_ids.json")));
         let grid = json_file(&dump.join("grid.json"));
         let generated = ids(&json_file(&dump.join("generated_ids.json")));
@@ -230,6 +243,127 @@ fn describe_dumps_what_the_model_crate_computes_on_both_fixtures() {
     }
 }
 
+/// `step_logits.npy` holds one row per generated token (the stop token's too) whose first row
+/// is `first_token_logits.npy`; `generated_steps.json` names the ids and their log-probabilities.
+fn check_steps(dump: &Path) {
+    let steps = Tensor::read_npy(dump.join("step_logits.npy")).unwrap();
+    let first = Tensor::read_npy(dump.join("first_token_logits.npy"))
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap();
+    let rows = steps.to_vec2::<f32>().unwrap();
+    assert_eq!(rows[0], first);
+    let generated = ids(&json_file(&dump.join("generated_ids.json")));
+    let meta = json_file(&dump.join("meta.json"));
+    let eos: Vec<u32> = ids(&meta["eos_ids"]);
+    let st = json_file(&dump.join("generated_steps.json"));
+    let st = st.as_array().unwrap();
+    assert_eq!(st.len(), rows.len());
+    assert!(rows.len() == generated.len() || rows.len() == generated.len() + 1);
+    for (i, (row, s)) in rows.iter().zip(st).enumerate() {
+        let id = s["id"].as_u64().unwrap() as u32;
+        if i < generated.len() {
+            assert_eq!(id, generated[i]);
+        } else {
+            assert!(eos.contains(&id), "the extra row is the stop token: {id}");
+        }
+        // Greedy: the id is the row's argmax, and its log-probability is the largest.
+        let argmax = row
+            .iter()
+            .enumerate()
+            .fold(0, |b, (j, &x)| if x > row[b] { j } else { b });
+        assert_eq!(argmax as u32, id, "step {i}");
+        let lp = s["logprob"].as_f64().unwrap();
+        assert!(lp <= 0.0 && lp > -50.0, "{s}");
+    }
+}
+
+/// The two repository families: their dumps, their own samplers (`frames.json`), and the
+/// dumped ids equal to the model crate's greedy decoding of the dumped inputs.
+#[test]
+fn describe_dumps_the_videollama2_and_vlaad_families() {
+    use vlmfuse_models::models::{videollama2, vlaad};
+    let s = setup();
+    for (name, model_type) in [("l2", "videollama2"), ("a", "vlaad")] {
+        let dump = s.dir.join(format!("dump-{name}"));
+        let text = ok(&describe(
+            &s,
+            &s.clip,
+            &["--reporter", name, "--dump", dump.to_str().unwrap()],
+        ));
+        assert!(text.contains("answer:"), "{text}");
+        check_steps(&dump);
+        assert_eq!(json_file(&dump.join("meta.json"))["model_type"], model_type);
+        let fr = json_file(&dump.join("frames.json"));
+        assert_eq!(fr["sampler"], "checkpoint", "{fr}");
+        let input_ids = ids(&json_file(&dump.join("input_ids.json")));
+        let generated = ids(&json_file(&dump.join("generated_ids.json")));
+        let px = Tensor::read_npy(dump.join("pixel_values.npy")).unwrap();
+        let n = input_ids.len();
+        let batch = EncodedBatch {
+            input_ids: vec![input_ids],
+            attention_mask: vec![vec![true; n]],
+        };
+        let data: Vec<f32> = px.flatten_all().unwrap().to_vec1().unwrap();
+        let want = if model_type == "videollama2" {
+            // frame_sample(20 frames, 4): the middles of four equal segments.
+            assert_eq!(fr["indices"], serde_json::json!([2, 7, 12, 17]), "{fr}");
+            let (m, _) = videollama2::VideoLlama2::load(
+                &WeightSource::local(&s.llama2),
+                &videollama2::LoadOptions::default(),
+            )
+            .unwrap();
+            let d = px.dims().to_vec();
+            assert_eq!(d, vec![4, 3, 35, 35]);
+            let inputs = videollama2::ModelInputs {
+                ids: batch,
+                videos: vec![VideoPixels {
+                    data,
+                    frames: d[0],
+                    height: d[2],
+                    width: d[3],
+                }],
+            };
+            generate(&m, &inputs, &GenerateOptions::greedy(MAX_NEW, &[2]), None)
+                .unwrap()
+                .tokens
+                .remove(0)
+        } else {
+            // load_video's np.arange(0, 20, 5), decoded at the model's 28x28.
+            assert_eq!(fr["indices"], serde_json::json!([0, 5, 10, 15]), "{fr}");
+            assert!(
+                fr["sizes"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .all(|z| *z == serde_json::json!([28, 28])),
+                "{fr}"
+            );
+            let m = vlaad::Vlaad::load(
+                &WeightSource::local(&s.vlaad),
+                &vlaad::LoadOptions::default(),
+            )
+            .unwrap();
+            let d = px.dims().to_vec();
+            assert_eq!(d, vec![4, 3, 28, 28]);
+            let inputs = vlaad::ModelInputs {
+                ids: batch,
+                videos: vec![vlaad::ClipPixels {
+                    data,
+                    frames: d[0],
+                    size: d[2],
+                    times: vec![0.0, 0.5, 1.0, 1.5],
+                }],
+            };
+            generate(&m, &inputs, &GenerateOptions::greedy(MAX_NEW, &[2]), None)
+                .unwrap()
+                .tokens
+                .remove(0)
+        };
+        assert_eq!(generated, want, "{name}: generated ids");
+    }
+}
+
 #[test]
 fn describe_errors_are_clear() {
     let s = setup();
@@ -237,7 +371,7 @@ fn describe_errors_are_clear() {
     assert_eq!(out.status.code(), Some(1));
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
-        err.contains("no reporter `nope`") && err.contains("configured: q, v, remote"),
+        err.contains("no reporter `nope`") && err.contains("configured: q, v, l2, a, remote"),
         "{err}"
     );
 

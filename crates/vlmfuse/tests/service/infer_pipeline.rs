@@ -9,7 +9,8 @@ use vlmfuse_testkit::clips::h264_clip;
 use vlmfuse_testkit::multipart::multipart;
 use vlmfuse_testkit::server::{FakeOpenAi, DRIVING_TEXT, LABELER_LABELS, LABELER_MODEL};
 use vlmfuse_testkit_models::fixtures::{
-    clip_embedder_toml, qwen_reporter_toml, video_llava_reporter_toml,
+    clip_embedder_toml, qwen_reporter_toml, video_llava_reporter_toml, videollama2_reporter_toml,
+    vlaad_reporter_toml,
 };
 
 const REPORTERS: &str =
@@ -299,4 +300,59 @@ async fn a_two_clip_request_batches_the_in_process_reporters() {
         clips[0]["reporters"]["qwen"]["text"], clips[1]["reporters"]["qwen"]["text"],
         "two different clips gave the same answer: the test would not see a row mix-up"
     );
+}
+
+/// The paper's three models in process at once (issue 22): VLAAD, VideoLLaMA2 and VideoLLaVA,
+/// each a tiny checkpoint in its own release layout, loaded once at start-up and run in
+/// parallel on one clip; VideoLLaMA2 and VLAAD decode their own frames (their samplers, VLAAD
+/// at its input size).
+#[tokio::test(flavor = "multi_thread")]
+async fn the_papers_three_models_run_in_process_together() {
+    let tmp = tempfile::tempdir().unwrap();
+    let fake = FakeOpenAi::start();
+    let mut cfg = String::from(REPORTERS);
+    cfg += &clip_embedder_toml(tmp.path());
+    cfg += &vlaad_reporter_toml(tmp.path(), "vlaad");
+    cfg += &videollama2_reporter_toml(tmp.path(), "videollama2");
+    cfg += &video_llava_reporter_toml(tmp.path(), "videollava");
+    cfg += &fake.labeler_toml();
+    let t0 = std::time::Instant::now();
+    let srv = TestApp::from_toml(tmp.path(), &cfg).await;
+    let ready = srv.get("/readyz").await.json();
+    eprintln!(
+        "three in-process models ready in {:.2} s",
+        t0.elapsed().as_secs_f64()
+    );
+    assert_eq!(ready["status"], "ready", "{ready}");
+    for name in ["vlaad", "videollama2", "videollava"] {
+        let r = &ready["components"]["reporters"][name];
+        assert_eq!(r["ready"], true, "{name}: {ready}");
+        assert_eq!(r["kind"], "candle", "{name}: {ready}");
+    }
+    let clip = h264_clip(tmp.path(), "drive.mp4", "testsrc2", 2.0);
+    let r = srv.post_clip(&clip).await;
+    let v = r.json();
+    assert_eq!(r.status, 200, "{v}");
+    assert_eq!(
+        v["coalition"],
+        json!(["vlaad", "videollama2", "videollava"]),
+        "{v}"
+    );
+    assert_eq!(v["failed"], json!({}), "{v}");
+    for name in ["vlaad", "videollama2", "videollava"] {
+        let rep = &v["reporters"][name];
+        assert!(
+            !rep["text"].as_str().unwrap().trim().is_empty(),
+            "{name}: {v}"
+        );
+        assert_eq!(rep["labels"], json!(LABELER_LABELS), "{name}: {v}");
+    }
+    // Run in parallel: the round takes less than the three reporters one after another.
+    let lat: Vec<f64> = ["vlaad", "videollama2", "videollava"]
+        .iter()
+        .map(|n| v["reporters"][*n]["latency_ms"].as_f64().unwrap())
+        .collect();
+    let round = v["timings_ms"]["reporters"].as_f64().unwrap();
+    eprintln!("reporter latencies {lat:?} ms, reporters stage {round:.1} ms");
+    assert!(round < lat.iter().sum::<f64>(), "{round} vs {lat:?}");
 }

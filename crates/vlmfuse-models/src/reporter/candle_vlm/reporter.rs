@@ -53,7 +53,20 @@ pub struct Trace {
     pub grid: serde_json::Value,
     /// Next-token logits after the prompt (f32).
     pub first_token_logits: Vec<f32>,
+    /// The logits each generated token (and the stop token, if one ended the answer) was
+    /// chosen from: `[tokens, vocab]`.
+    pub step_logits: Vec<Vec<f32>>,
+    /// The stop token that ended the answer (`None`: it ran to `max_new_tokens`).
+    pub stop: Option<u32>,
     pub generation: Generation,
+}
+
+/// What [`CandleVlmReporter::run`] hands back: the answers, and the logits kept for a trace.
+struct Run {
+    gens: Vec<Generation>,
+    first: Vec<Vec<f32>>,
+    steps: Vec<Vec<Vec<f32>>>,
+    stops: Vec<Option<u32>>,
 }
 
 /// [`LocalReporter`] over an in-process Qwen3-VL or VideoLLaVA. One generation at a time per
@@ -154,7 +167,7 @@ impl CandleVlmReporter {
     ) -> Result<Vec<Generation>, ModelError> {
         let t0 = Instant::now();
         let prepared = self.prepare(clips)?;
-        Ok(self.run(&prepared, cancel, t0, false)?.0)
+        Ok(self.run(&prepared, cancel, t0, false)?.gens)
     }
 
     /// One clip with everything `describe --dump` writes.
@@ -166,13 +179,24 @@ impl CandleVlmReporter {
             Some((t, g)) => (Some(t), g),
             None => (None, serde_json::Value::Null),
         };
-        let (mut gens, first) = self.run(&prepared, cancel, t0, true)?;
+        let Run {
+            mut gens,
+            first,
+            mut steps,
+            stops,
+        } = self.run(&prepared, cancel, t0, true)?;
         Ok(Trace {
             model_type: self.family.model_type(),
             input_ids: view.input_ids.into_iter().next().unwrap_or_default(),
             pixel_values,
             grid,
             first_token_logits: first.into_iter().next().unwrap_or_default(),
+            step_logits: if steps.is_empty() {
+                Vec::new()
+            } else {
+                steps.swap_remove(0)
+            },
+            stop: stops.first().copied().flatten(),
             generation: gens.pop().expect("one row"),
         })
     }
@@ -186,7 +210,7 @@ impl CandleVlmReporter {
         cancel: &AtomicBool,
         t0: Instant,
         keep_first: bool,
-    ) -> Result<(Vec<Generation>, Vec<Vec<f32>>), ModelError> {
+    ) -> Result<Run, ModelError> {
         let cfg = &self.cfg;
         let view = self.family.view(prepared)?;
         let opts = GenerateOptions {
@@ -196,6 +220,7 @@ impl CandleVlmReporter {
             top_p: cfg.top_p,
             seed: cfg.seed,
             keep_first_logits: keep_first,
+            keep_step_logits: keep_first,
         };
         let g = self.family.generate(prepared, &opts, Some(cancel))?;
         // The prefill time includes preprocessing, which happened before `generate` started.
@@ -216,7 +241,12 @@ impl CandleVlmReporter {
                 })
             })
             .collect::<Result<Vec<_>, ModelError>>()?;
-        Ok((gens, g.first_logits))
+        Ok(Run {
+            gens,
+            first: g.first_logits,
+            steps: g.step_logits,
+            stops: g.stop,
+        })
     }
 
     fn output(&self, g: &Generation, t0: Instant) -> ReporterOutput {
@@ -280,7 +310,7 @@ impl LocalReporter for CandleVlmReporter {
             }
         };
         match self.run(&prepared, cancel, t0, false) {
-            Ok((gens, _)) => gens.iter().map(|g| Ok(self.output(g, t0))).collect(),
+            Ok(Run { gens, .. }) => gens.iter().map(|g| Ok(self.output(g, t0))).collect(),
             Err(ModelError::Timeout { .. }) => clips
                 .iter()
                 .map(|_| {
