@@ -4,6 +4,7 @@
 //! `text`, ...) on candle-nn layers and has parity tests against transformers' outputs
 //! (`tests/*_parity.rs`).
 
+pub mod common;
 pub mod family;
 pub mod qwen3_vl;
 pub mod video_llava;

@@ -82,22 +82,7 @@ impl Family for VideoLlavaFamily {
     }
 
     fn view(&self, inputs: &ModelInputs) -> InputView {
-        let vid = self.model.config().video_token_id;
-        InputView {
-            input_ids: inputs.ids.input_ids.clone(),
-            visual_tokens: inputs
-                .ids
-                .input_ids
-                .iter()
-                .map(|r| r.iter().filter(|&&t| t == vid).count())
-                .collect(),
-            prompt_tokens: inputs
-                .ids
-                .attention_mask
-                .iter()
-                .map(|m| m.iter().filter(|&&m| m).count())
-                .collect(),
-        }
+        crate::models::common::view(&inputs.ids, self.model.config().video_token_id)
     }
 
     fn pixels(&self, inputs: &ModelInputs, r: usize) -> Result<Option<Pixels>, ModelError> {

@@ -20,7 +20,6 @@ pub mod text;
 pub mod vision;
 
 use std::collections::HashMap;
-use std::path::PathBuf;
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
@@ -32,8 +31,8 @@ pub use processor::{
 };
 pub use text::KvCache;
 
-use crate::lora::{load_adapter, merge_adapter_mapped};
-use crate::weights::{var_builder, WeightSource};
+use crate::models::common::load_merged;
+use crate::weights::WeightSource;
 use crate::{FrameRef, ModelError};
 use text::LlamaText;
 use vision::{concat_features, ClipTower, Projector};
@@ -260,52 +259,21 @@ impl VideoLlava {
         let cfg = VideoLlavaConfig::from_json(&raw)?;
         let files = source.safetensors_files()?;
         let first = files.first().cloned().unwrap_or_default();
-        let mut merged_lora = Vec::new();
-        let vb = match &opts.adapter {
-            None => {
-                let vb = var_builder(&files, opts.dtype, &opts.device)?;
-                let names = file_names(&vb);
-                vb.rename_f(names)
-            }
-            Some(adapter) => {
-                // The merge needs the base weights in memory; they are renamed to the hub
-                // layout first so an adapter of either naming finds them.
-                let mut base = HashMap::new();
-                for f in &files {
-                    let t = candle_core::safetensors::load(f, &Device::Cpu).map_err(|e| {
-                        ModelError::BadWeights {
-                            path: f.clone(),
-                            reason: e.to_string(),
-                        }
-                    })?;
-                    base.extend(t.into_iter().map(|(k, v)| (hub_name(&k), v)));
-                }
-                let (lcfg, lt) = load_adapter(adapter)?;
-                merged_lora =
-                    merge_adapter_mapped(&mut base, &lt, &lcfg, hub_name).map_err(|e| match e {
-                        ModelError::BadWeights { reason, .. } => ModelError::BadWeights {
-                            path: adapter
-                                .resolve("adapter_model.safetensors")
-                                .unwrap_or_else(|_| PathBuf::from(adapter.describe())),
-                            reason,
-                        },
-                        other => other,
-                    })?;
-                tracing::info!(adapter = %adapter.describe(), modules = merged_lora.len(),
-                    "merged LoRA adapter into VideoLLaVA");
-                let base = base
-                    .into_iter()
-                    .map(|(k, t)| {
-                        let t = if t.dtype().is_float() {
-                            t.to_dtype(opts.dtype)?
-                        } else {
-                            t
-                        };
-                        Ok((k, t.to_device(&opts.device)?))
-                    })
-                    .collect::<Result<HashMap<_, _>, candle_core::Error>>()?;
-                VarBuilder::from_tensors(base, opts.dtype, &opts.device)
-            }
+        // With an adapter the weights are renamed to the hub layout first, so an adapter of
+        // either naming finds them; without one each part is read where the file keeps it.
+        let (vb, merged_lora) = load_merged(
+            &files,
+            opts.adapter.as_ref(),
+            HashMap::new(),
+            hub_name,
+            opts.dtype,
+            &opts.device,
+        )?;
+        let vb = if opts.adapter.is_none() {
+            let names = file_names(&vb);
+            vb.rename_f(names)
+        } else {
+            vb
         };
         Self::from_var_builder(vb, cfg, opts, merged_lora, &first)
     }
@@ -524,20 +492,7 @@ impl VideoLlava {
 
     /// Feeds one token per row and returns the next logits, `[batch, vocab]`.
     pub fn step(&self, tokens: &[u32], cache: &mut KvCache) -> Result<Tensor, ModelError> {
-        if cache.is_empty() {
-            return Err(ModelError::InvalidInput("step before prefill".into()));
-        }
-        if tokens.len() != cache.batch() {
-            return Err(ModelError::InvalidInput(format!(
-                "{} tokens for a batch of {}",
-                tokens.len(),
-                cache.batch()
-            )));
-        }
-        let ids = Tensor::from_vec(tokens.to_vec(), (tokens.len(), 1), &self.device)?;
-        let emb = self.text.embed(&ids)?;
-        let valid = vec![vec![true]; tokens.len()];
-        Ok(self.text.forward(&emb, &valid, cache)?)
+        crate::models::common::step(&self.text, tokens, cache)
     }
 
     /// Logits after every prompt position fed one token at a time, `[batch, seq, vocab]`: the

@@ -492,22 +492,7 @@ impl VideoLlavaProcessor {
     /// Left-pads encoded rows to one length (generation needs every row's last token at the
     /// same index).
     pub fn pad_left(&self, rows: Vec<Vec<u32>>) -> EncodedBatch {
-        let len = rows.iter().map(|r| r.len()).max().unwrap_or(0);
-        let mut input_ids = Vec::with_capacity(rows.len());
-        let mut attention_mask = Vec::with_capacity(rows.len());
-        for r in rows {
-            let pad = len - r.len();
-            let mut ids = vec![self.pad_token_id; pad];
-            ids.extend_from_slice(&r);
-            let mut m = vec![false; pad];
-            m.extend(std::iter::repeat_n(true, r.len()));
-            input_ids.push(ids);
-            attention_mask.push(m);
-        }
-        EncodedBatch {
-            input_ids,
-            attention_mask,
-        }
+        crate::models::common::pad_left(rows, self.pad_token_id)
     }
 
     pub fn decode(&self, ids: &[u32], skip_special: bool) -> Result<String, ModelError> {

@@ -15,16 +15,15 @@ mod family;
 pub mod processor;
 
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use candle_core::{DType, Device, Tensor};
-use candle_nn::VarBuilder;
 
 pub use config::VideoLlama2Config;
 pub use family::VideoLlama2Family;
 pub use processor::{VideoLlama2Processor, VISUAL_TOKEN};
 
-use crate::lora::{load_adapter, merge_adapter};
+use crate::models::common::{self, load_merged, splice_visual};
 use crate::models::video_llava::processor::{EncodedBatch, VideoPixels};
 use crate::models::video_llava::text::{KvCache, LlamaText};
 use crate::models::video_llava::vision::ClipTower;
@@ -170,53 +169,23 @@ impl VideoLlama2 {
         let cfg = cfg.with_vision(&tower_src.config)?;
         let files = source.safetensors_files()?;
         let first = files.first().cloned().unwrap_or_default();
-        let mut merged_lora = Vec::new();
-        let vb = match &opts.adapter {
-            None => var_builder(&files, opts.dtype, &opts.device)?,
-            Some(adapter) => {
-                let mut base = HashMap::new();
-                for f in &files {
-                    let t = candle_core::safetensors::load(f, &Device::Cpu).map_err(|e| {
-                        ModelError::BadWeights {
-                            path: f.clone(),
-                            reason: e.to_string(),
-                        }
-                    })?;
-                    base.extend(t);
-                }
-                // The connector (and anything else trained in full) comes with the run.
-                if let Some(p) = adapter.resolve_optional("non_lora_trainables.bin")? {
-                    let extra = read_bin(&p)?;
-                    let n = extra.len();
-                    for (k, t) in extra {
-                        base.insert(non_lora_name(&k), t);
-                    }
-                    tracing::info!(tensors = n, "loaded non_lora_trainables.bin");
-                }
-                let (lcfg, lt) = load_adapter(adapter)?;
-                merged_lora = merge_adapter(&mut base, &lt, &lcfg).map_err(|e| match e {
-                    ModelError::BadWeights { reason, .. } => ModelError::BadWeights {
-                        path: PathBuf::from(adapter.describe()),
-                        reason,
-                    },
-                    other => other,
-                })?;
-                tracing::info!(adapter = %adapter.describe(), modules = merged_lora.len(),
-                    "merged LoRA adapter into VideoLLaMA2");
-                let base = base
-                    .into_iter()
-                    .map(|(k, t)| {
-                        let t = if t.dtype().is_float() {
-                            t.to_dtype(opts.dtype)?
-                        } else {
-                            t
-                        };
-                        Ok((k, t.to_device(&opts.device)?))
-                    })
-                    .collect::<Result<HashMap<_, _>, candle_core::Error>>()?;
-                VarBuilder::from_tensors(base, opts.dtype, &opts.device)
+        // The connector (and anything else trained in full) comes with a LoRA run.
+        let mut extra = HashMap::new();
+        if let Some(adapter) = &opts.adapter {
+            if let Some(p) = adapter.resolve_optional("non_lora_trainables.bin")? {
+                let t = read_bin(&p)?;
+                tracing::info!(tensors = t.len(), "loaded non_lora_trainables.bin");
+                extra.extend(t.into_iter().map(|(k, v)| (non_lora_name(&k), v)));
             }
-        };
+        }
+        let (vb, merged_lora) = load_merged(
+            &files,
+            opts.adapter.as_ref(),
+            extra,
+            |k| k.to_string(),
+            opts.dtype,
+            &opts.device,
+        )?;
         let err = bad_weights(&first);
         let select = cfg.select_index()?;
         let probe = format!("{TOWER}.embeddings.patch_embedding.weight");
@@ -323,56 +292,9 @@ impl VideoLlama2 {
     /// Input embeddings with the [`VISUAL_TOKEN`] positions replaced, in order, by the clips'
     /// tokens.
     pub fn input_embeddings(&self, inputs: &ModelInputs) -> Result<Tensor, ModelError> {
-        let (b, t) = (inputs.ids.batch(), inputs.ids.seq_len());
-        if b == 0 || t == 0 {
-            return Err(ModelError::InvalidInput("an empty prompt".into()));
-        }
-        let vocab = self.cfg.text.vocab_size as u32;
-        let flat: Vec<u32> = inputs.ids.input_ids.iter().flatten().copied().collect();
-        if let Some(bad) = flat.iter().find(|&&i| i >= vocab && i != VISUAL_TOKEN) {
-            return Err(ModelError::InvalidInput(format!(
-                "token id {bad} is outside the vocabulary ({vocab})"
-            )));
-        }
-        let text_ids: Vec<u32> = flat
-            .iter()
-            .map(|&i| if i == VISUAL_TOKEN { 0 } else { i })
-            .collect();
-        let hid = self.cfg.text.hidden_size;
-        let ids = Tensor::from_vec(text_ids, (b, t), &self.device)?;
-        let emb = self.text.embed(&ids)?.reshape((b * t, hid))?;
-        let nv = flat.iter().filter(|&&i| i == VISUAL_TOKEN).count();
-        if nv == 0 {
-            if !inputs.videos.is_empty() {
-                return Err(ModelError::InvalidInput(
-                    "pixels given but the prompt has no visual tokens".into(),
-                ));
-            }
-            return Ok(emb.reshape((b, t, hid))?);
-        }
-        let f = self.video_features(&inputs.videos)?.to_dtype(self.dtype)?;
-        if f.dim(0)? != nv {
-            return Err(ModelError::InvalidInput(format!(
-                "clip features and visual tokens do not match: {nv} tokens, {} features",
-                f.dim(0)?
-            )));
-        }
-        let mut k = 0usize;
-        let src: Vec<u32> = flat
-            .iter()
-            .enumerate()
-            .map(|(p, &id)| {
-                if id == VISUAL_TOKEN {
-                    k += 1;
-                    (b * t + k - 1) as u32
-                } else {
-                    p as u32
-                }
-            })
-            .collect();
-        let table = Tensor::cat(&[emb, f], 0)?;
-        let src = Tensor::from_vec(src, b * t, &self.device)?;
-        Ok(table.index_select(&src, 0)?.reshape((b, t, hid))?)
+        splice_visual(&self.text, &inputs.ids, || {
+            self.video_features(&inputs.videos)
+        })
     }
 
     fn check_window(&self, len: usize) -> Result<(), ModelError> {
@@ -395,20 +317,7 @@ impl VideoLlama2 {
 
     /// One token per row; the next logits.
     pub fn step(&self, tokens: &[u32], cache: &mut KvCache) -> Result<Tensor, ModelError> {
-        if cache.is_empty() {
-            return Err(ModelError::InvalidInput("step before prefill".into()));
-        }
-        if tokens.len() != cache.batch() {
-            return Err(ModelError::InvalidInput(format!(
-                "{} tokens for a batch of {}",
-                tokens.len(),
-                cache.batch()
-            )));
-        }
         self.check_window(cache.len() + 1)?;
-        let ids = Tensor::from_vec(tokens.to_vec(), (tokens.len(), 1), &self.device)?;
-        let emb = self.text.embed(&ids)?;
-        let valid = vec![vec![true]; tokens.len()];
-        Ok(self.text.forward(&emb, &valid, cache)?)
+        common::step(&self.text, tokens, cache)
     }
 }

@@ -14,9 +14,7 @@ use crate::models::video_llava::processor::{EncodedBatch, VideoPixels};
 use crate::weights::WeightSource;
 use crate::{FrameRef, ModelError};
 
-/// The id that stands for one visual token in [`EncodedBatch`] rows (the repository uses
-/// `-201` for the whole clip; here each of the clip's tokens has a position of its own).
-pub const VISUAL_TOKEN: u32 = u32::MAX;
+pub use crate::models::common::VISUAL_TOKEN;
 
 /// The text the repository puts before the user's turn (`mm_infer`, Mistral-based models).
 pub const SYSTEM_PROMPT: &str = "<<SYS>>\nYou are a helpful, respectful and honest assistant. \
@@ -294,22 +292,7 @@ impl VideoLlama2Processor {
     /// Left-pads rows to one length (rows of one batch share the prompt and frame count, so
     /// they are equal in practice).
     pub fn pad_left(&self, rows: Vec<Vec<u32>>) -> EncodedBatch {
-        let len = rows.iter().map(|r| r.len()).max().unwrap_or(0);
-        let mut input_ids = Vec::with_capacity(rows.len());
-        let mut attention_mask = Vec::with_capacity(rows.len());
-        for r in rows {
-            let pad = len - r.len();
-            let mut ids = vec![self.pad_token_id; pad];
-            ids.extend_from_slice(&r);
-            let mut m = vec![false; pad];
-            m.extend(std::iter::repeat_n(true, r.len()));
-            input_ids.push(ids);
-            attention_mask.push(m);
-        }
-        EncodedBatch {
-            input_ids,
-            attention_mask,
-        }
+        crate::models::common::pad_left(rows, self.pad_token_id)
     }
 
     pub fn decode(&self, ids: &[u32], skip_special: bool) -> Result<String, ModelError> {

@@ -163,21 +163,7 @@ impl Family for VlaadFamily {
     }
 
     fn view(&self, inputs: &ModelInputs) -> InputView {
-        InputView {
-            input_ids: inputs.ids.input_ids.clone(),
-            visual_tokens: inputs
-                .ids
-                .input_ids
-                .iter()
-                .map(|r| r.iter().filter(|&&t| t == VISUAL_TOKEN).count())
-                .collect(),
-            prompt_tokens: inputs
-                .ids
-                .attention_mask
-                .iter()
-                .map(|m| m.iter().filter(|&&m| m).count())
-                .collect(),
-        }
+        crate::models::common::view(&inputs.ids, VISUAL_TOKEN)
     }
 
     fn pixels(&self, inputs: &ModelInputs, r: usize) -> Result<Option<Pixels>, ModelError> {

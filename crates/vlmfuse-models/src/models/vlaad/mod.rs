@@ -26,7 +26,7 @@ pub use config::VlaadConfig;
 pub use family::VlaadFamily;
 pub use processor::{ClipPixels, VlaadProcessor, VISUAL_TOKEN};
 
-use crate::lora::{load_adapter, merge_adapter};
+use crate::models::common::{self, load_merged, splice_visual};
 use crate::models::video_llava::config::TextConfig;
 use crate::models::video_llava::processor::EncodedBatch;
 use crate::models::video_llava::text::{KvCache, LlamaText};
@@ -201,25 +201,14 @@ impl Vlaad {
         // The LLaMA, with the adapter merged if there is one.
         let files = llama.safetensors_files()?;
         let first = files.first().cloned().unwrap_or_default();
-        let mut merged_lora = Vec::new();
-        let tvb = match &opts.adapter {
-            None => crate::weights::var_builder(&files, opts.dtype, &opts.device)?,
-            Some(adapter) => {
-                let mut base = HashMap::new();
-                for f in &files {
-                    base.extend(candle_core::safetensors::load(f, &Device::Cpu).map_err(bad(f))?);
-                }
-                let (lcfg, lt) = load_adapter(adapter)?;
-                merged_lora = merge_adapter(&mut base, &lt, &lcfg)?;
-                tracing::info!(adapter = %adapter.describe(), modules = merged_lora.len(),
-                    "merged LoRA adapter into VLAAD's LLaMA");
-                let base = base
-                    .into_iter()
-                    .map(|(k, t)| Ok((k, t.to_dtype(opts.dtype)?.to_device(&opts.device)?)))
-                    .collect::<Result<HashMap<_, _>, candle_core::Error>>()?;
-                VarBuilder::from_tensors(base, opts.dtype, &opts.device)
-            }
-        };
+        let (tvb, merged_lora) = load_merged(
+            &files,
+            opts.adapter.as_ref(),
+            HashMap::new(),
+            |k| k.to_string(),
+            opts.dtype,
+            &opts.device,
+        )?;
         let head = if tie {
             None
         } else if tvb.contains_tensor("lm_head.weight") {
@@ -304,59 +293,14 @@ impl Vlaad {
 
     /// Input embeddings with each row's [`VISUAL_TOKEN`] run replaced by its clip's tokens.
     pub fn input_embeddings(&self, inputs: &ModelInputs) -> Result<Tensor, ModelError> {
-        let (b, t) = (inputs.ids.batch(), inputs.ids.seq_len());
-        if b == 0 || t == 0 {
-            return Err(ModelError::InvalidInput("an empty prompt".into()));
-        }
-        let vocab = self.text_cfg.vocab_size as u32;
-        let flat: Vec<u32> = inputs.ids.input_ids.iter().flatten().copied().collect();
-        if let Some(bad) = flat.iter().find(|&&i| i >= vocab && i != VISUAL_TOKEN) {
-            return Err(ModelError::InvalidInput(format!(
-                "token id {bad} is outside the vocabulary ({vocab})"
-            )));
-        }
-        let hid = self.text_cfg.hidden_size;
-        let text_ids: Vec<u32> = flat
-            .iter()
-            .map(|&i| if i == VISUAL_TOKEN { 0 } else { i })
-            .collect();
-        let emb = self
-            .text
-            .embed(&Tensor::from_vec(text_ids, (b, t), &self.device)?)?
-            .reshape((b * t, hid))?;
-        let nv = flat.iter().filter(|&&i| i == VISUAL_TOKEN).count();
-        if nv == 0 {
-            return Ok(emb.reshape((b, t, hid))?);
-        }
-        let feats = inputs
-            .videos
-            .iter()
-            .map(|v| self.clip_tokens(v))
-            .collect::<Result<Vec<_>, _>>()?;
-        let f = Tensor::cat(&feats, 0)?.to_dtype(self.dtype)?;
-        if f.dim(0)? != nv {
-            return Err(ModelError::InvalidInput(format!(
-                "clip tokens and visual positions do not match: {nv} positions, {} tokens",
-                f.dim(0)?
-            )));
-        }
-        let mut k = 0usize;
-        let src: Vec<u32> = flat
-            .iter()
-            .enumerate()
-            .map(|(p, &id)| {
-                if id == VISUAL_TOKEN {
-                    k += 1;
-                    (b * t + k - 1) as u32
-                } else {
-                    p as u32
-                }
-            })
-            .collect();
-        let table = Tensor::cat(&[emb, f], 0)?;
-        Ok(table
-            .index_select(&Tensor::from_vec(src, b * t, &self.device)?, 0)?
-            .reshape((b, t, hid))?)
+        splice_visual(&self.text, &inputs.ids, || {
+            let feats = inputs
+                .videos
+                .iter()
+                .map(|v| self.clip_tokens(v))
+                .collect::<Result<Vec<_>, _>>()?;
+            Ok(Tensor::cat(&feats, 0)?)
+        })
     }
 
     pub fn prefill(&self, inputs: &ModelInputs, cache: &mut KvCache) -> Result<Tensor, ModelError> {
@@ -366,19 +310,6 @@ impl Vlaad {
     }
 
     pub fn step(&self, tokens: &[u32], cache: &mut KvCache) -> Result<Tensor, ModelError> {
-        if cache.is_empty() {
-            return Err(ModelError::InvalidInput("step before prefill".into()));
-        }
-        if tokens.len() != cache.batch() {
-            return Err(ModelError::InvalidInput(format!(
-                "{} tokens for a batch of {}",
-                tokens.len(),
-                cache.batch()
-            )));
-        }
-        let ids = Tensor::from_vec(tokens.to_vec(), (tokens.len(), 1), &self.device)?;
-        let emb = self.text.embed(&ids)?;
-        let valid = vec![vec![true]; tokens.len()];
-        Ok(self.text.forward(&emb, &valid, cache)?)
+        common::step(&self.text, tokens, cache)
     }
 }

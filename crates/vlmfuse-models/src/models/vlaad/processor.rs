@@ -12,8 +12,7 @@ use crate::imaging::{Arith, Resample, Resizer, OPENAI_CLIP_MEAN, OPENAI_CLIP_STD
 use crate::models::video_llava::processor::{EncodedBatch, VideoLlavaProcessor};
 use crate::{FrameRef, ModelError};
 
-/// The id standing for one visual token in [`EncodedBatch`] rows.
-pub const VISUAL_TOKEN: u32 = u32::MAX;
+pub use crate::models::common::VISUAL_TOKEN;
 
 /// One clip's pixels, `[t, 3, S, S]`.
 #[derive(Debug, Clone, PartialEq)]
@@ -163,22 +162,7 @@ impl VlaadProcessor {
     }
 
     pub fn pad_left(&self, rows: Vec<Vec<u32>>) -> EncodedBatch {
-        let len = rows.iter().map(|r| r.len()).max().unwrap_or(0);
-        let mut input_ids = Vec::with_capacity(rows.len());
-        let mut attention_mask = Vec::with_capacity(rows.len());
-        for r in rows {
-            let pad = len - r.len();
-            let mut ids = vec![self.pad_token_id; pad];
-            ids.extend_from_slice(&r);
-            let mut m = vec![false; pad];
-            m.extend(std::iter::repeat_n(true, r.len()));
-            input_ids.push(ids);
-            attention_mask.push(m);
-        }
-        EncodedBatch {
-            input_ids,
-            attention_mask,
-        }
+        crate::models::common::pad_left(rows, self.pad_token_id)
     }
 
     pub fn decode(&self, ids: &[u32], skip_special: bool) -> Result<String, ModelError> {
