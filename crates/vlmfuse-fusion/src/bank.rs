@@ -42,8 +42,9 @@ pub struct Bank {
     compact: bool,
 }
 
-/// Below this many entries the exact f64 scan is cheap enough on its own.
-const PREFILTER_MIN: usize = 2048;
+/// Below this many entries the exact f64 scan is cheap enough on its own (at 1,000 entries of
+/// d = 512 the f32 first pass halves a scan: `vlmfuse bench --banks 1000`).
+const PREFILTER_MIN: usize = 512;
 
 /// f32 dot product, sixteen lanes wide so it vectorises.
 #[inline(always)]
@@ -512,6 +513,19 @@ impl Bank {
     /// the `m`-th best for the exact score: the `adaptive` switch's `paper` candidate searches
     /// its labelled window this way on every labelled round.
     pub fn top_among(&self, x: &[f64], pos: &[usize], m: usize) -> Vec<Neighbour> {
+        self.top_among_with(x, pos, m, None)
+    }
+
+    /// [`Bank::top_among`] reusing a first pass already made over the whole bank for the same
+    /// query (`(approx, bound)` from [`Bank::approx_with_bounds`], covering every entry of
+    /// `pos`): the same values the pass here would compute, so the same result.
+    pub fn top_among_with(
+        &self,
+        x: &[f64],
+        pos: &[usize],
+        m: usize,
+        first: Option<(&[f32], &[f64])>,
+    ) -> Vec<Neighbour> {
         let m = m.min(pos.len());
         if m == 0 {
             return Vec::new();
@@ -519,15 +533,21 @@ impl Bank {
         if pos.len() <= 4 * m || self.mirror.len() != self.len() * self.dim {
             return self.select(pos.iter().map(|&j| (j, self.sim(x, j))), m);
         }
-        let q = F32Query::new(x, self.dim);
-        let d = self.dim;
-        let approx: Vec<(f64, f64)> = pos
-            .iter()
-            .map(|&j| {
-                let a = dot_f32_fast(&self.mirror[j * d..(j + 1) * d], &q.xq);
-                (a as f64, q.bound(self.mirror_err[j]))
-            })
-            .collect();
+        let approx: Vec<(f64, f64)> = match first {
+            Some((a, b)) if pos.iter().all(|&j| j < a.len() && j < b.len()) => {
+                pos.iter().map(|&j| (a[j] as f64, b[j])).collect()
+            }
+            _ => {
+                let q = F32Query::new(x, self.dim);
+                let d = self.dim;
+                pos.iter()
+                    .map(|&j| {
+                        let a = dot_f32_fast(&self.mirror[j * d..(j + 1) * d], &q.xq);
+                        (a as f64, q.bound(self.mirror_err[j]))
+                    })
+                    .collect()
+            }
+        };
         let mut lo: Vec<f64> = approx.iter().map(|&(a, b)| a - b).collect();
         let (_, &mut cut, _) = lo.select_nth_unstable_by(m - 1, |a, b| b.total_cmp(a));
         let survivors = pos
@@ -774,10 +794,30 @@ mod tests {
                 b.mirror.len() == b.len() * b.dim,
                 "the first pass is not exercised"
             );
+            let (approx, bound) = b.approx_with_bounds(&q).expect("a first pass");
             for m in [1, 10, 50, 120] {
                 let brute = b.select(subset.iter().map(|&j| (j, sims[j])), m);
                 assert_eq!(b.top_among(&q, &subset, m), brute, "query {qi} m {m}");
+                // Reusing the whole bank's first pass gives the same; so does a pass that
+                // misses some positions searched (it is then not used).
+                let first = Some((approx.as_slice(), bound.as_slice()));
+                assert_eq!(
+                    b.top_among_with(&q, &subset, m, first),
+                    brute,
+                    "reused {qi} {m}"
+                );
+                let short = Some((&approx[..4000], &bound[..4000]));
+                assert_eq!(
+                    b.top_among_with(&q, &subset, m, short),
+                    brute,
+                    "short {qi} {m}"
+                );
             }
+            // And it is used: a made-up pass (later entries "closer", no error) decides.
+            let fake: Vec<f32> = (0..5000).map(|j| j as f32 / 5000.0).collect();
+            let zero = vec![0.0; 5000];
+            let got = b.top_among_with(&q, &subset, 10, Some((&fake, &zero)));
+            assert!(got.iter().all(|n| n.pos >= 4900), "{got:?}");
         }
         // A query equal to a stored context finds it (and its older duplicate first).
         let q = b.context(4000).to_vec();

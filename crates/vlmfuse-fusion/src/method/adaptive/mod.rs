@@ -230,7 +230,8 @@ impl Adaptive {
                 a.calib_pooled_prior,
                 a.calib_newton_steps,
                 a.calib_min_slope,
-            ),
+            )
+            .refit_every(4),
             global: GlobalSums::new(
                 n,
                 l,
@@ -594,11 +595,11 @@ impl Adaptive {
             let keyed = a.half_life <= 0.0;
             let weight = |e: &pool::Nb, decayed: bool| -> (f64, f64) {
                 let (pos, sim) = (e.pos as usize, e.sim);
-                debug_assert!(!keyed || e.key == sim.max(0.0).powf(cfg.tau));
+                debug_assert!(!keyed || e.key == pool::kernel(sim, cfg.tau));
                 let mut w = if keyed {
                     e.key
                 } else {
-                    sim.max(0.0).powf(cfg.tau)
+                    pool::kernel(sim, cfg.tau)
                 };
                 if decayed && a.half_life > 0.0 {
                     let age = (at as f64 - pool.clock(pos) as f64).abs();
@@ -820,6 +821,15 @@ impl Adaptive {
             None,
         );
         let initial = || vec![cx.cfg.adaptive.threshold_initial; cx.l];
+        // The scan's f32 first pass, when it covers the pool as it is now.
+        let first = scan
+            .first_pass
+            .as_ref()
+            .filter(|_| scan.epoch == self.pool.epoch() && scan.pool_len == self.pool.len());
+        if let (Some(p), Some(f)) = (&self.paper, first) {
+            p.remember_pass(&self.pool, round, f);
+        }
+        let first = first.map(|f| f.as_ref());
         let (q, thresholds) = match self.serving(cx) {
             Predictor::MajorityVote => (self.vote_posterior(cx, round), initial()),
             Predictor::DawidSkene => (
@@ -831,11 +841,11 @@ impl Adaptive {
                 let model = || (self.posterior(cx, &signals), self.thresholds(cx));
                 match (&self.paper, self.serving(cx)) {
                     (Some(p), Predictor::Paper) => {
-                        let a = p.infer(cx, &self.pool, round);
+                        let a = p.infer(cx, &self.pool, round, first);
                         (a.q, a.thresholds)
                     }
                     (Some(p), _) => {
-                        let a = p.infer(cx, &self.pool, round);
+                        let a = p.infer(cx, &self.pool, round, first);
                         let (q, t) = model();
                         blend(&q, &t, &a.q, &a.thresholds)
                     }
@@ -851,7 +861,7 @@ impl Adaptive {
     /// it is kept.
     pub fn paper_candidate(&self, cx: &Ctx, round: &Round) -> Option<(Vec<f64>, Vec<f64>)> {
         self.paper.as_ref().map(|p| {
-            let a = p.infer(cx, &self.pool, round);
+            let a = p.infer(cx, &self.pool, round, None);
             (a.q, a.thresholds)
         })
     }
@@ -1252,7 +1262,7 @@ impl Adaptive {
         let paper_q = self
             .paper
             .as_ref()
-            .map(|p| p.infer(&before, &self.pool, &lr.round));
+            .map(|p| p.infer(&before, &self.pool, &lr.round, None));
         if a.serve != Serve::Model && parts.is_some() {
             let t = self.thresholds(cx);
             let vote = majority_vote(&lr.round, l);
@@ -1291,7 +1301,7 @@ impl Adaptive {
         }
         self.threshold.push(&model_q, &lr.truth);
         if let (Some(p), Some(a)) = (self.paper.as_mut(), &paper_q) {
-            p.learn(cx, lr, a, known_before);
+            p.learn(cx, &self.pool, lr, a, known_before);
         }
         let pos = match self.pool.position(lr.seq) {
             // Labels it already had, or new ones (partial feedback), or an override.

@@ -23,7 +23,7 @@
 use std::collections::VecDeque;
 use std::sync::Mutex;
 
-use super::pool::Pool;
+use super::pool::{FirstPass, Pool};
 use super::Calibrator;
 use crate::config::FusionConfig;
 use crate::corr::CorrWindow;
@@ -56,6 +56,41 @@ pub struct PaperCandidate {
     /// label arrives next): a cache, so not state.
     #[serde(skip)]
     memo: Memo,
+    /// The pool scans' f32 first passes of the latest rounds inferred, so that the answer
+    /// asked when one of them is labelled reuses its pass (a cache, so not state).
+    #[serde(skip)]
+    passes: Passes,
+    /// The pool positions of `recent` (`None` where the pool lacks the round), kept in step
+    /// with it while the pool evicts nothing: a cache, so not state.
+    #[serde(skip)]
+    positions: Positions,
+}
+
+/// `(pool epoch, version, (seq, position) per entry of recent)`; a position not found yet (the
+/// round joins the pool after it is learnt, in a replay) is looked up again when used.
+#[derive(Debug, Default)]
+struct Positions(Mutex<Option<(u64, u64, VecDeque<(u64, Option<usize>)>)>>);
+
+impl Clone for Positions {
+    /// A copy starts empty (a cache).
+    fn clone(&self) -> Self {
+        Positions::default()
+    }
+}
+
+/// How many recent rounds' first passes are kept (a round is usually labelled soon after it is
+/// inferred, or much later, when its pass is stale anyway).
+const PASSES: usize = 4;
+
+/// Recent first passes: the round's context, the pool's epoch then, the pass.
+#[derive(Debug, Default)]
+struct Passes(Mutex<VecDeque<(Vec<f64>, u64, std::sync::Arc<FirstPass>)>>);
+
+impl Clone for Passes {
+    /// A copy starts empty (a cache).
+    fn clone(&self) -> Self {
+        Passes::default()
+    }
 }
 
 /// The candidate's answer for a round.
@@ -116,36 +151,102 @@ impl PaperCandidate {
             recent: VecDeque::new(),
             version: 0,
             memo: Memo::default(),
+            passes: Passes::default(),
+            positions: Positions::default(),
         }
     }
 
     /// The candidate's posteriors for a round and the thresholds it decides them at. Rounds not
     /// yet labelled are not among the neighbours, so a round being labelled is not its own.
-    pub fn infer(&self, cx: &Ctx, pool: &Pool, round: &Round) -> Answer {
+    /// `first`, when given, is the pool scan's f32 first pass for this round (fresh: covering
+    /// the whole pool), which the neighbour search reuses.
+    pub fn infer(&self, cx: &Ctx, pool: &Pool, round: &Round, first: Option<&FirstPass>) -> Answer {
+        let kept;
+        let first = match first {
+            Some(f) => Some(f),
+            None => {
+                kept = self.pass_of(pool, round);
+                kept.as_deref()
+            }
+        };
         let mut memo = self.memo.0.lock().unwrap_or_else(|e| e.into_inner());
         if let Some(((v, w, r), a)) = memo.as_ref() {
             if *v == self.version && w.as_slice() == cx.w && r == round {
                 return a.clone();
             }
         }
-        let answer = self.compute(cx, pool, round);
+        let answer = self.compute(cx, pool, round, first);
         *memo = Some(((self.version, cx.w.to_vec(), round.clone()), answer.clone()));
         answer
     }
 
-    fn compute(&self, cx: &Ctx, pool: &Pool, round: &Round) -> Answer {
+    /// Keeps a round's first pass for when it is labelled (made while the pool had
+    /// `f.approx.len()` entries, at the pool's current epoch).
+    pub fn remember_pass(&self, pool: &Pool, round: &Round, f: &std::sync::Arc<FirstPass>) {
+        let mut p = self.passes.0.lock().unwrap_or_else(|e| e.into_inner());
+        if p.iter().any(|(c, _, _)| *c == round.context) {
+            return;
+        }
+        p.push_back((round.context.clone(), pool.epoch(), f.clone()));
+        while p.len() > PASSES {
+            p.pop_front();
+        }
+    }
+
+    /// A kept first pass for `round`, if the pool has not evicted anything since (positions
+    /// unchanged; entries added since are not in the pass, and are not neighbours the
+    /// candidate searches unless labelled, in which case the search falls back).
+    fn pass_of(&self, pool: &Pool, round: &Round) -> Option<std::sync::Arc<FirstPass>> {
+        let p = self.passes.0.lock().unwrap_or_else(|e| e.into_inner());
+        p.iter()
+            .find(|(c, e, _)| *e == pool.epoch() && *c == round.context)
+            .map(|(_, _, f)| f.clone())
+    }
+
+    /// The pool positions of the labelled window, from the cache when it is current.
+    fn positions(&self, pool: &Pool) -> Vec<usize> {
+        let mut c = self.positions.0.lock().unwrap_or_else(|e| e.into_inner());
+        match c.as_mut() {
+            Some((e, v, p)) if *e == pool.epoch() && *v == self.version => p
+                .iter_mut()
+                .filter_map(|(seq, at)| {
+                    if at.is_none() {
+                        *at = pool.position(*seq);
+                    }
+                    *at
+                })
+                .collect(),
+            _ => {
+                let p: VecDeque<(u64, Option<usize>)> = self
+                    .recent
+                    .iter()
+                    .map(|&seq| (seq, pool.position(seq)))
+                    .collect();
+                let out = p.iter().filter_map(|&(_, at)| at).collect();
+                *c = Some((pool.epoch(), self.version, p));
+                out
+            }
+        }
+    }
+
+    fn compute(&self, cx: &Ctx, pool: &Pool, round: &Round, first: Option<&FirstPass>) -> Answer {
         let cfg = cx.cfg;
         let bank = &pool.bank;
         let m = cfg.k.max(cfg.k_prior);
         let nb = if cfg.ablations.no_context || bank.dim() == 0 || round.context.is_empty() {
             Vec::new()
         } else {
-            let pos: Vec<usize> = self
-                .recent
-                .iter()
-                .filter_map(|&seq| pool.position(seq))
-                .collect();
-            bank.top_among(&round.context, &pos, m)
+            let pos = self.positions(pool);
+            let covered =
+                |f: &&FirstPass| f.len() <= bank.len() && pos.iter().all(|&j| j < f.len());
+            match first.filter(covered) {
+                // The scan's exact cosines: the exact ranking `top_among` would compute.
+                Some(FirstPass::Exact(sims)) => bank.select(pos.iter().map(|&j| (j, sims[j])), m),
+                Some(FirstPass::Approx { approx, bound }) => {
+                    bank.top_among_with(&round.context, &pos, m, Some((approx, bound)))
+                }
+                None => bank.top_among(&round.context, &pos, m),
+            }
         };
         let signals = crate::method::paper::signals(cx, round, bank, &self.corr, &nb);
         let raw_q = signals.full_posterior();
@@ -177,7 +278,14 @@ impl PaperCandidate {
     /// label): the correlation window, the calibration and the threshold fit take it in, and the
     /// round joins the neighbours searched (once: a later feedback on the same round adds only
     /// labels).
-    pub fn learn(&mut self, cx: &Ctx, lr: &LabelledRound, a: &Answer, known_before: bool) {
+    pub fn learn(
+        &mut self,
+        cx: &Ctx,
+        pool: &Pool,
+        lr: &LabelledRound,
+        a: &Answer,
+        known_before: bool,
+    ) {
         let r = &lr.round;
         self.version += 1;
         self.corr.push(&r.present, &r.reports, &lr.truth);
@@ -186,11 +294,25 @@ impl PaperCandidate {
             self.calib
                 .push(&a.logit, &vec![0.0; a.logit.len()], &lr.truth);
         }
+        let mut cache = self.positions.0.lock().unwrap_or_else(|e| e.into_inner());
+        let current = matches!(cache.as_ref(), Some((e, v, _)) if *e == pool.epoch() && *v + 1 == self.version);
+        if !current {
+            *cache = None;
+        }
         if !known_before {
             self.recent.push_back(lr.seq);
+            if let Some((_, _, p)) = cache.as_mut() {
+                p.push_back((lr.seq, pool.position(lr.seq)));
+            }
             while self.recent.len() > cx.cfg.adaptive.paper_window {
                 self.recent.pop_front();
+                if let Some((_, _, p)) = cache.as_mut() {
+                    p.pop_front();
+                }
             }
+        }
+        if let Some((_, v, _)) = cache.as_mut() {
+            *v = self.version;
         }
     }
 }

@@ -42,6 +42,34 @@ pub struct Scan {
     /// The approximate index's cell of the round's context, when the scan went through it
     /// (the cells never move, so the insertion need not compare it with the centres again).
     pub cell: Option<u32>,
+    /// The bank's f32 first pass over the whole pool, when the exact scan made one: the
+    /// switch's `paper` candidate ranks its labelled window from it instead of a pass of its own.
+    pub first_pass: Option<std::sync::Arc<FirstPass>>,
+}
+
+/// What a scan learnt of every pool entry's cosine to a round's context, in pool order.
+#[derive(Debug, Clone, PartialEq)]
+pub enum FirstPass {
+    /// Exact cosines ([`crate::bank::Bank::sim`]), where the pool is small enough to score
+    /// every entry exactly.
+    Exact(Vec<f64>),
+    /// Approximate cosines and the rigorous bounds on their errors
+    /// ([`crate::bank::Bank::approx_with_bounds`]).
+    Approx { approx: Vec<f32>, bound: Vec<f64> },
+}
+
+impl FirstPass {
+    /// Entries covered.
+    pub fn len(&self) -> usize {
+        match self {
+            FirstPass::Exact(s) => s.len(),
+            FirstPass::Approx { approx, .. } => approx.len(),
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
 }
 
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
@@ -255,10 +283,17 @@ impl Search {
     }
 }
 
-/// `max(0, s)^tau`.
+/// `max(0, s)^tau`; the default `tau = 4` as two squarings (a `powf` per pool entry per scan
+/// was a twentieth of a round; the two agree to an ulp).
 #[inline]
 pub fn kernel(s: f64, tau: f64) -> f64 {
-    s.max(0.0).powf(tau)
+    let s = s.max(0.0);
+    if tau == 4.0 {
+        let q = s * s;
+        q * q
+    } else {
+        s.powf(tau)
+    }
 }
 
 /// `2^(-age / h)`, exactly 1 without decay.
@@ -447,6 +482,7 @@ impl Pool {
             top,
             rev,
             cell: Some(cell),
+            first_pass: None,
         }
     }
 
@@ -779,10 +815,16 @@ impl Pool {
     fn may_enter(&self, j: usize, sim: f64, at: u64) -> bool {
         match self.worst(j) {
             None => true,
-            Some(w) => {
-                let key = self.key(sim, at, self.clock[j]);
-                key > w.key || (key == w.key && sim >= w.sim)
-            }
+            Some(_) => self.may_enter_with(j, sim, self.key(sim, at, self.clock[j])),
+        }
+    }
+
+    /// [`Pool::may_enter`] with the newcomer's weight `key` already known.
+    #[inline]
+    fn may_enter_with(&self, j: usize, sim: f64, key: f64) -> bool {
+        match self.worst(j) {
+            None => true,
+            Some(w) => key > w.key || (key == w.key && sim >= w.sim),
         }
     }
 
@@ -822,6 +864,7 @@ impl Pool {
             top,
             rev,
             cell: None,
+            first_pass: None,
         }
     }
 
@@ -844,7 +887,9 @@ impl Pool {
         let mut rev: Vec<(usize, f64)> = Vec::new();
         let newcomer_beats = |j: usize, sim: f64| self.may_enter(j, sim, at);
         let by_sim = self.half_life <= 0.0 && self.worst_sim.len() == len;
-        match self.bank.approx_with_bounds(x) {
+        let first = self.bank.approx_with_bounds(x);
+        let mut exact: Option<Vec<f64>> = None;
+        match first.as_ref().map(|(a, b)| (a, b)) {
             Some((approx, bound)) if by_sim => {
                 // Without decay the weight `max(0, s)^tau` is a non-decreasing function of the
                 // cosine and ties are broken by the cosine, so ranking by weight is ranking by
@@ -873,14 +918,19 @@ impl Pool {
                 }
             }
             None => {
+                let mut all = Vec::with_capacity(len);
                 for j in 0..len {
                     let sim = self.bank.sim(x, j);
-                    top.push(self.nb_at(j, sim, at));
-                    if newcomer_beats(j, sim) {
+                    all.push(sim);
+                    let nb = self.nb_at(j, sim, at);
+                    // The weight is symmetric in the two clocks: the one computed for `top`.
+                    if self.may_enter_with(j, sim, nb.key) {
                         rev.push((j, sim));
                     }
+                    top.push(nb);
                 }
                 self.rank(&mut top, m);
+                exact = Some(all);
             }
             Some((approx, bound)) => {
                 let mut lo: Vec<f64> = Vec::with_capacity(len);
@@ -919,6 +969,13 @@ impl Pool {
             top,
             rev,
             cell: None,
+            first_pass: match (exact, first) {
+                (Some(e), _) => Some(std::sync::Arc::new(FirstPass::Exact(e))),
+                (None, Some((approx, bound))) => {
+                    Some(std::sync::Arc::new(FirstPass::Approx { approx, bound }))
+                }
+                (None, None) => None,
+            },
         }
     }
 
@@ -939,6 +996,8 @@ impl Pool {
             top,
             rev,
             cell: scan.cell,
+            // Covers the first `scan.pool_len` entries only: users check the pool's length.
+            first_pass: None,
         }
     }
 
