@@ -15,6 +15,35 @@ use crate::models::video_llava::text::{KvCache, LlamaText};
 use crate::weights::{var_builder, WeightSource};
 use crate::ModelError;
 
+/// How to load a checkpoint of a family without options of its own (VideoLLaMA2, VLAAD).
+#[derive(Debug, Clone)]
+pub struct LoadOptions {
+    pub dtype: DType,
+    pub device: Device,
+    /// A PEFT LoRA adapter merged into the weights at load.
+    pub adapter: Option<WeightSource>,
+}
+
+impl Default for LoadOptions {
+    fn default() -> Self {
+        Self {
+            dtype: DType::F32,
+            device: Device::Cpu,
+            adapter: None,
+        }
+    }
+}
+
+/// Text of `ids` (special tokens dropped when `skip_special`).
+pub fn decode(
+    tok: &tokenizers::Tokenizer,
+    ids: &[u32],
+    skip_special: bool,
+) -> Result<String, ModelError> {
+    tok.decode(ids, skip_special)
+        .map_err(|e| ModelError::InvalidInput(format!("tokenizer: {e}")))
+}
+
 /// The id that stands for one visual token in a prompt row (the repositories use one marker
 /// for the whole clip, `-201` or `<ImageHere>`; here each of the clip's tokens has a position
 /// of its own, so the rows are the LLM's real input length).

@@ -32,7 +32,8 @@ use crate::method::Ctx;
 use crate::signals::clip;
 use crate::threshold::ThresholdFitter;
 
-/// The candidate's calibration is refitted after every `CALIB_EVERY`-th labelled round: a refit
+/// Once its window is full, the candidate's calibration is refitted after every `CALIB_EVERY`-th
+/// labelled round (every round before): a refit
 /// passes over its whole window, and refitting each round doubled the switch's cost of a
 /// labelled round (`vlmfuse bench`); the map moves slowly, and it never changes a decision.
 const CALIB_EVERY: usize = 8;
@@ -69,7 +70,10 @@ pub struct PaperCandidate {
 /// `(pool epoch, version, (seq, position) per entry of recent)`; a position not found yet (the
 /// round joins the pool after it is learnt, in a replay) is looked up again when used.
 #[derive(Debug, Default)]
-struct Positions(Mutex<Option<(u64, u64, VecDeque<(u64, Option<usize>)>)>>);
+struct Positions(Mutex<Option<PositionsAt>>);
+
+/// `(pool epoch, version, (seq, position) per entry of recent)`.
+type PositionsAt = (u64, u64, VecDeque<(u64, Option<usize>)>);
 
 impl Clone for Positions {
     /// A copy starts empty (a cache).
@@ -84,7 +88,10 @@ const PASSES: usize = 4;
 
 /// Recent first passes: the round's context, the pool's epoch then, the pass.
 #[derive(Debug, Default)]
-struct Passes(Mutex<VecDeque<(Vec<f64>, u64, std::sync::Arc<FirstPass>)>>);
+struct Passes(Mutex<VecDeque<KeptPass>>);
+
+/// A round's context, the pool's epoch when it was scanned, and the scan's first pass.
+type KeptPass = (Vec<f64>, u64, std::sync::Arc<FirstPass>);
 
 impl Clone for Passes {
     /// A copy starts empty (a cache).

@@ -496,9 +496,7 @@ impl VideoLlavaProcessor {
     }
 
     pub fn decode(&self, ids: &[u32], skip_special: bool) -> Result<String, ModelError> {
-        self.tokenizer
-            .decode(ids, skip_special)
-            .map_err(|e| ModelError::InvalidInput(format!("tokenizer: {e}")))
+        crate::models::common::decode(&self.tokenizer, ids, skip_special)
     }
 }
 

@@ -42,22 +42,7 @@ pub struct ModelInputs {
 }
 
 /// How to load a checkpoint.
-#[derive(Debug, Clone)]
-pub struct LoadOptions {
-    pub dtype: DType,
-    pub device: Device,
-    pub adapter: Option<WeightSource>,
-}
-
-impl Default for LoadOptions {
-    fn default() -> Self {
-        Self {
-            dtype: DType::F32,
-            device: Device::Cpu,
-            adapter: None,
-        }
-    }
-}
+pub use crate::models::common::LoadOptions;
 
 /// Where the tower's config, processor and (if the checkpoint lacks them) weights come from.
 pub struct Tower {

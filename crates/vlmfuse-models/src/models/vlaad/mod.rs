@@ -41,23 +41,7 @@ pub struct ModelInputs {
     pub videos: Vec<ClipPixels>,
 }
 
-#[derive(Debug, Clone)]
-pub struct LoadOptions {
-    pub dtype: DType,
-    pub device: Device,
-    /// A PEFT LoRA adapter on the LLaMA.
-    pub adapter: Option<WeightSource>,
-}
-
-impl Default for LoadOptions {
-    fn default() -> Self {
-        Self {
-            dtype: DType::F32,
-            device: Device::Cpu,
-            adapter: None,
-        }
-    }
-}
+pub use crate::models::common::LoadOptions;
 
 fn bad(path: &Path) -> impl Fn(candle_core::Error) -> ModelError + '_ {
     move |e| ModelError::BadWeights {
