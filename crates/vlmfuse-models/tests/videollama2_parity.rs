@@ -5,9 +5,8 @@
 //! stored under `tests/data/parity/videollama2/`. The fixtures are rebuilt here by the same
 //! deterministic writer the script read.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
-use base64::Engine;
 use vlmfuse_models::generate::{generate_with, GenerateOptions};
 use vlmfuse_models::models::family::{load_family, FamilyOptions};
 use vlmfuse_models::models::videollama2::{
@@ -16,43 +15,18 @@ use vlmfuse_models::models::videollama2::{
 use vlmfuse_models::{Frame, FrameRef, ModelError, WeightSource};
 use vlmfuse_testkit_models::fixtures::video_llava::{SyntheticClip, PARITY_CLIPS};
 use vlmfuse_testkit_models::fixtures::TinyVideoLlama2;
+use vlmfuse_testkit_models::parity::{b64, f32s, max_abs_diff};
 
 const MODEL_SEED: u64 = 5;
 const ADAPTER_SEED: u64 = 23;
 const TOL: f32 = 1e-4;
 
 fn read_json(name: &str) -> serde_json::Value {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../tests/data/parity/videollama2")
-        .join(name);
-    let text = std::fs::read_to_string(&p).unwrap_or_else(|e| {
-        panic!(
-            "{}: {e} (run scripts/parity/videollama2.py to create it)",
-            p.display()
-        )
-    });
-    serde_json::from_str(&text).unwrap()
-}
-
-fn b64(v: &serde_json::Value) -> Vec<u8> {
-    base64::engine::general_purpose::STANDARD
-        .decode(v.as_str().expect("base64 string"))
-        .unwrap()
-}
-
-fn f32s(v: &serde_json::Value) -> Vec<f32> {
-    b64(v)
-        .chunks_exact(4)
-        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-        .collect()
-}
-
-fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
-    assert_eq!(a.len(), b.len());
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f32::max)
+    vlmfuse_testkit_models::parity::read_reference(
+        "videollama2",
+        name,
+        "scripts/parity/videollama2.py",
+    )
 }
 
 /// The fixture directories, as `examples/videollama2_fixture.rs` lays them out.

@@ -5,9 +5,8 @@
 //! logits, 16 greedy ids, and a LoRA adapter (`adapter_model.bin`) on the LLaMA, compared with
 //! the outputs `scripts/parity/vlaad.py` stored under `tests/data/parity/vlaad/`.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
-use base64::Engine;
 use vlmfuse_models::generate::{generate_with, GenerateOptions};
 use vlmfuse_models::models::family::{load_family, FamilyOptions};
 use vlmfuse_models::models::vlaad::family::load_tokenizer;
@@ -16,44 +15,23 @@ use vlmfuse_models::models::vlaad::{
 };
 use vlmfuse_models::{FrameRef, ModelError, WeightSource};
 use vlmfuse_testkit_models::fixtures::TinyVlaad;
+use vlmfuse_testkit_models::parity::{b64, f32s, max_abs_diff};
 
 const MODEL_SEED: u64 = 9;
 const ADAPTER_SEED: u64 = 29;
 const TOL: f32 = 1e-4;
 
 fn data(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../tests/data/parity/vlaad")
-        .join(name)
+    vlmfuse_testkit_models::parity::data_dir("vlaad").join(name)
 }
 
 fn cases() -> Vec<serde_json::Value> {
-    let p = data("cases.json");
-    let text = std::fs::read_to_string(&p)
-        .unwrap_or_else(|e| panic!("{}: {e} (run scripts/parity/vlaad.py)", p.display()));
-    let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let v = vlmfuse_testkit_models::parity::read_reference(
+        "vlaad",
+        "cases.json",
+        "scripts/parity/vlaad.py",
+    );
     v["cases"].as_array().unwrap().clone()
-}
-
-fn b64(v: &serde_json::Value) -> Vec<u8> {
-    base64::engine::general_purpose::STANDARD
-        .decode(v.as_str().expect("base64 string"))
-        .unwrap()
-}
-
-fn f32s(v: &serde_json::Value) -> Vec<f32> {
-    b64(v)
-        .chunks_exact(4)
-        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-        .collect()
-}
-
-fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
-    assert_eq!(a.len(), b.len());
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f32::max)
 }
 
 struct Fixture {

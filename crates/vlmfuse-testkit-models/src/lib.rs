@@ -11,3 +11,4 @@
 pub mod assets;
 pub mod fixtures;
 pub mod labeler_eval;
+pub mod parity;
