@@ -489,9 +489,12 @@ pub fn emit_line(engine: &Engine, o: &RoundOutcome) -> Value {
     let ont = engine.ontology();
     let labels: Vec<String> = ont.labels().iter().map(|l| l.id.clone()).collect();
     let reporters = engine.reporters();
+    // One number when every label shares it; `adaptive`'s calibration maps a global threshold
+    // per label (monotonically, like the posteriors), so those rounds carry the map.
+    let uniform = o.thresholds.iter().all(|&t| t == o.thresholds[0]);
     let threshold = match engine.config().threshold_mode {
-        ThresholdMode::Global => json!(o.thresholds[0]),
-        ThresholdMode::PerLabel => map_of(&labels, &o.thresholds),
+        ThresholdMode::Global if uniform => json!(o.thresholds[0]),
+        _ => map_of(&labels, &o.thresholds),
     };
     let mut line = json!({
         "id": o.id,

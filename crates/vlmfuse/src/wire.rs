@@ -50,7 +50,8 @@ pub struct FuseOut {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub decision_score: Option<vlmfuse_fusion::CandidateScore>,
     pub threshold: f64,
-    /// Per-label thresholds, only in the per-label threshold mode.
+    /// Per-label thresholds, when they differ: the per-label threshold mode, or `adaptive`'s
+    /// calibration mapping one threshold per label.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub thresholds: Option<Ordered<f64>>,
     pub coalition: Vec<String>,
@@ -114,8 +115,9 @@ pub fn fuse_out(engine: &Engine, seq: u64, id: Option<String>, inf: &Inference) 
         ),
         decision_score: serving_score(engine),
         threshold: inf.thresholds.first().copied().unwrap_or(0.5),
-        thresholds: (engine.threshold().mode() == ThresholdMode::PerLabel)
-            .then(|| Ordered((0..l).map(|k| (label(k), inf.thresholds[k])).collect())),
+        thresholds: (engine.threshold().mode() == ThresholdMode::PerLabel
+            || inf.thresholds.iter().any(|&t| t != inf.thresholds[0]))
+        .then(|| Ordered((0..l).map(|k| (label(k), inf.thresholds[k])).collect())),
         coalition: present.iter().map(|&i| reporters[i].clone()).collect(),
         missing: (0..reporters.len())
             .filter(|i| !present.contains(i))

@@ -79,13 +79,17 @@ fn eval_emits_spec_rounds_report_and_plots() {
     for (line, inp) in lines.iter().zip(&input) {
         assert_eq!(line["id"], inp["id"]);
         assert_eq!(line["q"].as_object().unwrap().len(), 14);
-        let t = line["threshold"].as_f64().unwrap();
-        // pred is exactly the labels with q >= threshold.
+        // One threshold, or one per label (the calibration maps it per label).
+        let t = |k: &str| match &line["threshold"] {
+            Value::Object(m) => m[k].as_f64().unwrap(),
+            v => v.as_f64().unwrap(),
+        };
+        // pred is exactly the labels with q >= their threshold.
         let mut expect: Vec<&str> = line["q"]
             .as_object()
             .unwrap()
             .iter()
-            .filter(|(_, q)| q.as_f64().unwrap() >= t)
+            .filter(|(k, q)| q.as_f64().unwrap() >= t(k))
             .map(|(k, _)| k.as_str())
             .collect();
         expect.sort();
