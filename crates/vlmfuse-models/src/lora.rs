@@ -186,11 +186,7 @@ pub fn load_adapter(
         return Ok((cfg, tensors));
     }
     if let Some(path) = source.resolve_optional("adapter_model.bin")? {
-        let tensors = candle_core::pickle::read_all(&path)
-            .map_err(|e| bad(&path, e))?
-            .into_iter()
-            .collect();
-        return Ok((cfg, tensors));
+        return Ok((cfg, crate::weights::read_pth(&path, None)?));
     }
     // Neither: the error names the file PEFT writes today.
     let path = source.resolve("adapter_model.safetensors")?;

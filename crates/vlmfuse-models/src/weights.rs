@@ -469,6 +469,20 @@ pub fn var_builder(
     })
 }
 
+/// A PyTorch state dict (`torch.save`'s `.bin` / `.pth`), under `key` when it is nested
+/// (`{"model": state_dict}`), on the CPU; a broken file names itself.
+pub fn read_pth(
+    path: &Path,
+    key: Option<&str>,
+) -> Result<std::collections::HashMap<String, candle_core::Tensor>, ModelError> {
+    candle_core::pickle::read_all_with_key(path, key)
+        .map(|v| v.into_iter().collect())
+        .map_err(|e| ModelError::BadWeights {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

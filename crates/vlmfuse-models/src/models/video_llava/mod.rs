@@ -244,7 +244,10 @@ pub struct VideoLlava {
     merged_lora: Vec<String>,
 }
 
-fn bad_weights(path: &std::path::Path) -> impl Fn(candle_core::Error) -> ModelError + '_ {
+/// A candle error on the file `path` as [`ModelError::BadWeights`].
+pub(crate) fn bad_weights(
+    path: &std::path::Path,
+) -> impl Fn(candle_core::Error) -> ModelError + '_ {
     move |e| ModelError::BadWeights {
         path: path.to_path_buf(),
         reason: e.to_string(),

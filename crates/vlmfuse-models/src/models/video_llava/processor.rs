@@ -25,7 +25,8 @@ struct TokenizerSettings {
     pad: Option<String>,
 }
 
-fn token_str(v: Option<&serde_json::Value>) -> Option<String> {
+/// A special token in `tokenizer_config.json`: a string or `{"content": …}`.
+pub(crate) fn token_str(v: Option<&serde_json::Value>) -> Option<String> {
     match v? {
         serde_json::Value::String(s) => Some(s.clone()),
         serde_json::Value::Object(o) => o.get("content")?.as_str().map(str::to_string),
@@ -501,7 +502,7 @@ impl VideoLlavaProcessor {
 }
 
 /// `eos_token_id` may be a number or a list.
-fn ids_of(v: Option<&serde_json::Value>) -> Vec<u32> {
+pub(crate) fn ids_of(v: Option<&serde_json::Value>) -> Vec<u32> {
     match v {
         Some(serde_json::Value::Number(n)) => {
             n.as_u64().map(|x| vec![x as u32]).unwrap_or_default()

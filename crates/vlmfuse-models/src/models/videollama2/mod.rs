@@ -24,10 +24,11 @@ pub use family::VideoLlama2Family;
 pub use processor::{VideoLlama2Processor, VISUAL_TOKEN};
 
 use crate::models::common::{self, load_merged, splice_visual};
+use crate::models::video_llava::bad_weights;
 use crate::models::video_llava::processor::{EncodedBatch, VideoPixels};
 use crate::models::video_llava::text::{KvCache, LlamaText};
 use crate::models::video_llava::vision::ClipTower;
-use crate::weights::{var_builder, WeightSource};
+use crate::weights::{read_pth, var_builder, WeightSource};
 use crate::ModelError;
 use connector::StcConnector;
 
@@ -117,23 +118,6 @@ pub struct VideoLlama2 {
     merged_lora: Vec<String>,
 }
 
-fn bad_weights(path: &Path) -> impl Fn(candle_core::Error) -> ModelError + '_ {
-    move |e| ModelError::BadWeights {
-        path: path.to_path_buf(),
-        reason: e.to_string(),
-    }
-}
-
-/// Reads a PyTorch `.bin` (pickle) state dict.
-fn read_bin(path: &Path) -> Result<HashMap<String, Tensor>, ModelError> {
-    candle_core::pickle::read_all(path)
-        .map(|v| v.into_iter().collect())
-        .map_err(|e| ModelError::BadWeights {
-            path: path.to_path_buf(),
-            reason: e.to_string(),
-        })
-}
-
 /// A LoRA run's `non_lora_trainables.bin` keys (`base_model.model.model.mm_projector.*`) as
 /// the repository's loader maps them (`base_model.` then a doubled `model.` dropped).
 pub fn non_lora_name(k: &str) -> String {
@@ -158,7 +142,7 @@ impl VideoLlama2 {
         let mut extra = HashMap::new();
         if let Some(adapter) = &opts.adapter {
             if let Some(p) = adapter.resolve_optional("non_lora_trainables.bin")? {
-                let t = read_bin(&p)?;
+                let t = read_pth(&p, None)?;
                 tracing::info!(tensors = t.len(), "loaded non_lora_trainables.bin");
                 extra.extend(t.into_iter().map(|(k, v)| (non_lora_name(&k), v)));
             }

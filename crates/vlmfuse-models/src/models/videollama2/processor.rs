@@ -10,7 +10,7 @@ use tokenizers::Tokenizer;
 use super::config::{AspectRatio, VideoLlama2Config, MAX_FRAMES};
 use crate::chat_template::{ChatTemplate, Message};
 use crate::imaging::{Arith, ImageProcessor};
-use crate::models::video_llava::processor::{EncodedBatch, VideoPixels};
+use crate::models::video_llava::processor::{ids_of, token_str, EncodedBatch, VideoPixels};
 use crate::weights::WeightSource;
 use crate::{FrameRef, ModelError};
 
@@ -42,14 +42,6 @@ pub const LLAMA2_DEFAULT_TEMPLATE: &str = "{% if messages[0]['role'] == 'system'
 {% elif message['role'] == 'system' %}{{ '<<SYS>>\\n' + content.strip() + '\\n<</SYS>>\\n\\n' }}\
 {% elif message['role'] == 'assistant' %}{{ ' '  + content.strip() + ' ' + eos_token }}\
 {% endif %}{% endfor %}";
-
-fn token_str(v: Option<&serde_json::Value>) -> Option<String> {
-    match v? {
-        serde_json::Value::String(s) => Some(s.clone()),
-        serde_json::Value::Object(o) => o.get("content")?.as_str().map(str::to_string),
-        _ => None,
-    }
-}
 
 /// `chat_template` as transformers stores it: a string, or a list of named templates of
 /// which `default` is the one `apply_chat_template` uses.
@@ -115,15 +107,7 @@ impl VideoLlama2Processor {
         let mut eos_token_ids = Vec::new();
         if source.resolve_optional("generation_config.json")?.is_some() {
             let g: serde_json::Value = source.read_json("generation_config.json")?;
-            match g.get("eos_token_id") {
-                Some(serde_json::Value::Number(n)) => {
-                    eos_token_ids.extend(n.as_u64().map(|x| x as u32))
-                }
-                Some(serde_json::Value::Array(a)) => {
-                    eos_token_ids.extend(a.iter().filter_map(|x| x.as_u64().map(|x| x as u32)))
-                }
-                _ => {}
-            }
+            eos_token_ids.extend(ids_of(g.get("eos_token_id")));
         }
         // The repository stops on the tokenizer's EOS (`KeywordsStoppingCriteria`).
         if let Some(id) = tokenizer.token_to_id(&eos) {

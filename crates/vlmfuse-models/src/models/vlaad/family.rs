@@ -8,6 +8,7 @@ use tokenizers::Tokenizer;
 use super::{KvCache, LoadOptions, ModelInputs, Vlaad, VlaadProcessor, VISUAL_TOKEN};
 use crate::generate::Decoder;
 use crate::models::family::{Family, FamilyOptions, InputView, Pixels};
+use crate::models::video_llava::processor::token_str;
 use crate::weights::WeightSource;
 use crate::{Frame, FrameRef, ModelError};
 
@@ -29,14 +30,6 @@ impl Decoder for Vlaad {
     }
     fn step(&self, tokens: &[u32], cache: &mut KvCache) -> Result<Tensor, ModelError> {
         Vlaad::step(self, tokens, cache)
-    }
-}
-
-fn token_str(v: Option<&serde_json::Value>) -> Option<String> {
-    match v? {
-        serde_json::Value::String(s) => Some(s.clone()),
-        serde_json::Value::Object(o) => o.get("content")?.as_str().map(str::to_string),
-        _ => None,
     }
 }
 

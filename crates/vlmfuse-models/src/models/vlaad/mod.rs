@@ -27,10 +27,11 @@ pub use family::VlaadFamily;
 pub use processor::{ClipPixels, VlaadProcessor, VISUAL_TOKEN};
 
 use crate::models::common::{self, load_merged, splice_visual};
+use crate::models::video_llava::bad_weights;
 use crate::models::video_llava::config::TextConfig;
 use crate::models::video_llava::processor::EncodedBatch;
 use crate::models::video_llava::text::{KvCache, LlamaText};
-use crate::weights::WeightSource;
+use crate::weights::{read_pth, WeightSource};
 use crate::ModelError;
 use towers::{EvaVit, Qformer};
 
@@ -42,20 +43,6 @@ pub struct ModelInputs {
 }
 
 pub use crate::models::common::LoadOptions;
-
-fn bad(path: &Path) -> impl Fn(candle_core::Error) -> ModelError + '_ {
-    move |e| ModelError::BadWeights {
-        path: path.to_path_buf(),
-        reason: e.to_string(),
-    }
-}
-
-/// A `.pth` state dict, under `key` when it is nested (`{"model": …}`).
-fn read_pth(path: &Path, key: Option<&str>) -> Result<HashMap<String, Tensor>, ModelError> {
-    candle_core::pickle::read_all_with_key(path, key)
-        .map(|v| v.into_iter().collect())
-        .map_err(bad(path))
-}
 
 /// A file named in `config.json`: relative to the checkpoint (through its source, so hub
 /// checkpoints work), or absolute.
@@ -137,7 +124,7 @@ impl Vlaad {
             .map(|(k, t)| Ok((k, t.to_dtype(opts.dtype)?.to_device(&opts.device)?)))
             .collect::<Result<HashMap<_, _>, candle_core::Error>>()?;
         let vvb = VarBuilder::from_tensors(vis, opts.dtype, &opts.device);
-        let err = bad(&run);
+        let err = bad_weights(&run);
         if !vvb.contains_tensor("visual_encoder.cls_token") {
             return Err(ModelError::BadWeights {
                 path: blip.clone(),
@@ -203,7 +190,8 @@ impl Vlaad {
                 reason: "no `lm_head.weight` and tie_word_embeddings is false".into(),
             });
         };
-        let text = LlamaText::load(tvb.pp("model"), head, &text_cfg).map_err(bad(&first))?;
+        let text =
+            LlamaText::load(tvb.pp("model"), head, &text_cfg).map_err(bad_weights(&first))?;
         Ok(Self {
             cfg,
             text_cfg,
