@@ -18,7 +18,6 @@
 //! per step, and its result depends only on the rounds pushed, in order.
 
 use crate::signals::sigmoid;
-use std::collections::VecDeque;
 
 /// Inputs are clipped to this magnitude before they enter a fit: beyond it the sigmoid is 0 or 1
 /// to double precision, and a huge input would only destabilise Newton's steps.
@@ -38,7 +37,7 @@ pub struct Calibrator {
     steps: usize,
     min_slope: f64,
     /// The window: per labelled round, `(evidence, prior log-odds)` per label and the truth.
-    rounds: VecDeque<(Vec<[f64; 2]>, Vec<u8>)>,
+    rounds: Window,
     pooled: Params,
     per_label: Vec<Params>,
     /// Refit after every `every`-th round taken in (1: each; see [`Calibrator::refit_every`]).
@@ -61,16 +60,12 @@ struct Acc {
 }
 
 impl Acc {
-    #[inline]
-    fn add(&mut self, th: &Params, x: [f64; 2], y: u8) {
-        let f = [x[0], x[1], 1.0];
-        let p = sigmoid(th[0] * f[0] + th[1] * f[1] + th[2]);
-        let r = p - y as f64;
-        let w = p * (1.0 - p);
+    /// Adds another pass's sums to these.
+    fn merge(&mut self, o: &Acc) {
         for i in 0..3 {
-            self.g[i] += r * f[i];
-            for j in 0..3 {
-                self.h[i][j] += w * f[i] * f[j];
+            self.g[i] += o.g[i];
+            for j in 0..=i {
+                self.h[i][j] += o.h[i][j];
             }
         }
     }
@@ -91,6 +86,128 @@ impl Acc {
         // loose enough never to bind near it.
         let s = if norm > 4.0 { 4.0 / norm } else { 1.0 };
         [th[0] - s * d[0], th[1] - s * d[1], th[2] - s * d[2]]
+    }
+}
+
+/// Lanes of the sums of one pass: observation `i` adds to lane `i % LANES`, and the lanes are
+/// added up in a fixed order at the end, so the sums are the same bits on every path.
+const LANES: usize = 4;
+
+/// `exp(x)` for `x <= 0` by arithmetic alone (Cody–Waite reduction by `ln 2`, the degree-13
+/// Taylor polynomial of `e^r` on `|r| <= ln 2 / 2`, the power of two built from its bits):
+/// within 2 ulp of the correctly rounded value, 0 below -708, and no call and no branch, so
+/// that a pass's sigmoids vectorise. The same operations on every path give the same bits.
+#[inline(always)]
+fn exp_nonpositive(x: f64) -> f64 {
+    const MAGIC: f64 = 6755399441055744.0; // 1.5 * 2^52: adding it rounds to an integer
+    const LN2_HI: f64 = 6.931_471_803_691_238_164_9e-1;
+    const LN2_LO: f64 = 1.908_214_929_270_587_700_0e-10;
+    let xc = x.max(-708.0);
+    let shifted = xc * std::f64::consts::LOG2_E + MAGIC;
+    let n = shifted - MAGIC;
+    let r = (xc - n * LN2_HI) - n * LN2_LO;
+    let mut poly = 1.0 / 6_227_020_800.0; // 1/13!
+    for c in [
+        1.0 / 479_001_600.0,
+        1.0 / 39_916_800.0,
+        1.0 / 3_628_800.0,
+        1.0 / 362_880.0,
+        1.0 / 40_320.0,
+        1.0 / 5_040.0,
+        1.0 / 720.0,
+        1.0 / 120.0,
+        1.0 / 24.0,
+        1.0 / 6.0,
+        0.5,
+        1.0,
+        1.0,
+    ] {
+        poly = poly * r + c;
+    }
+    // The integer n sits in the low bits of `shifted`; 2^n is (n + 1023) in the exponent field.
+    let scale = f64::from_bits(
+        (shifted.to_bits().wrapping_sub(MAGIC.to_bits()))
+            .wrapping_add(1023)
+            .wrapping_shl(52),
+    );
+    let v = poly * scale;
+    if x < -708.0 {
+        0.0
+    } else {
+        v
+    }
+}
+
+/// The logistic sigmoid of [`crate::signals::sigmoid`] on [`exp_nonpositive`]: what a refit
+/// fits with (within a few ulp of it; the calibrated probabilities served use the former).
+#[inline(always)]
+fn sigmoid_fit(z: f64) -> f64 {
+    let e = exp_nonpositive(-z.abs());
+    let num = if z >= 0.0 { 1.0 } else { e };
+    num / (1.0 + e)
+}
+
+/// One pass of a refit over observations `(x, y)` (`y = 2`: unknown, skipped) at parameters `th`: the gradient and the
+/// lower triangle of the Hessian of the negative log-likelihood ([`solve3`] reads no other).
+/// AVX2 where the processor has it: `LANES` observations a step, the same bits as elsewhere
+/// (no FMA; the lanes are the sums' order everywhere).
+fn pass(th: &Params, x: &[[f64; 2]], y: &[f64]) -> Acc {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the feature this function is compiled for was just detected.
+        return unsafe { pass_avx2(th, x, y) };
+    }
+    pass_body(th, x, y)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn pass_avx2(th: &Params, x: &[[f64; 2]], y: &[f64]) -> Acc {
+    pass_body(th, x, y)
+}
+
+#[inline(always)]
+fn pass_body(th: &Params, x: &[[f64; 2]], y: &[f64]) -> Acc {
+    // Sums per lane: g = [r e, r q, r], h = [w e e, w q e, w q q, w e, w q, w].
+    let mut g = [[0.0f64; LANES]; 3];
+    let mut h = [[0.0f64; LANES]; 6];
+    let n = x.len().min(y.len());
+    let mut add = |j: usize, xi: [f64; 2], yi: f64| {
+        let (e, q) = (xi[0], xi[1]);
+        let p = sigmoid_fit(th[0] * e + th[1] * q + th[2]);
+        // A label of unknown truth (`y = 2`, partial feedback) fits nothing: its terms are
+        // zeros (adding `0` or `-0` leaves every sum as it was).
+        let known = if yi <= 1.0 { 1.0 } else { 0.0 };
+        let r = (p - yi) * known;
+        let w = p * (1.0 - p) * known;
+        let (we, wq) = (w * e, w * q);
+        g[0][j] += r * e;
+        g[1][j] += r * q;
+        g[2][j] += r;
+        h[0][j] += we * e;
+        h[1][j] += wq * e;
+        h[2][j] += wq * q;
+        h[3][j] += we;
+        h[4][j] += wq;
+        h[5][j] += w;
+    };
+    let full = n - n % LANES;
+    for (xs, ys) in x[..full]
+        .chunks_exact(LANES)
+        .zip(y[..full].chunks_exact(LANES))
+    {
+        for j in 0..LANES {
+            add(j, xs[j], ys[j]);
+        }
+    }
+    for i in full..n {
+        add(i - full, x[i], y[i]);
+    }
+    let total = |v: &[f64; LANES]| (v[0] + v[1]) + (v[2] + v[3]);
+    let (g, h) = (g.map(|v| total(&v)), h.map(|v| total(&v)));
+    Acc {
+        g,
+        h: [[h[0], 0.0, 0.0], [h[1], h[2], 0.0], [h[3], h[4], h[5]]],
     }
 }
 
@@ -158,7 +275,7 @@ impl Calibrator {
             pooled_prior,
             steps,
             min_slope,
-            rounds: VecDeque::new(),
+            rounds: Window::default(),
             pooled: IDENTITY,
             per_label: vec![IDENTITY; l],
             every: 1,
@@ -188,7 +305,7 @@ impl Calibrator {
             .zip(prior_logit)
             .map(|(&e, &p)| [clip_input(e), clip_input(p)])
             .collect();
-        self.rounds.push_back((x, y.to_vec()));
+        self.rounds.push_back(&x, y);
         if self.rounds.len() > self.window {
             self.rounds.pop_front();
         }
@@ -205,28 +322,115 @@ impl Calibrator {
     }
 
     fn refit(&mut self) {
+        // Each label's observations are one contiguous run of the window (see `Window`); the
+        // pooled fit adds the labels' sums in label order.
         for _ in 0..self.steps {
             let mut acc = Acc::default();
-            for (x, y) in &self.rounds {
-                // Labels of unknown truth (partial feedback) fit nothing.
-                for k in (0..self.l).filter(|&k| y[k] <= 1) {
-                    acc.add(&self.pooled, x[k], y[k]);
-                }
+            for k in 0..self.l {
+                let (x, y) = self.rounds.label(k);
+                acc.merge(&pass(&self.pooled, x, y));
             }
             self.pooled = self.clamp(acc.step(self.pooled, IDENTITY, self.pooled_prior));
         }
         let centre = self.pooled;
         for k in 0..self.l {
+            let (x, y) = self.rounds.label(k);
             let mut th = self.per_label[k];
             for _ in 0..self.steps {
-                let mut acc = Acc::default();
-                for (x, y) in self.rounds.iter().filter(|(_, y)| y[k] <= 1) {
-                    acc.add(&th, x[k], y[k]);
-                }
-                th = self.clamp(acc.step(th, centre, self.label_prior));
+                th = self.clamp(pass(&th, x, y).step(th, centre, self.label_prior));
             }
             self.per_label[k] = th;
         }
+    }
+}
+
+/// The calibration's window of labelled rounds, kept per label as one contiguous run of
+/// `(evidence, prior log-odds)` and truth (2: unknown) in round order, so that a refit reads
+/// each label's observations straight from memory (gathering them from per-round rows cost as
+/// much as the fit). Rows are appended at the end and retired from the front; the retired
+/// prefix is dropped once it is as long as the live part (amortised O(1) per round). Saved as
+/// the list of rounds it always was: `[(x per label, truth per label), ...]`, oldest first.
+#[derive(Debug, Clone, Default)]
+struct Window {
+    /// Per label: the rows pushed since the last compaction.
+    x: Vec<Vec<[f64; 2]>>,
+    y: Vec<Vec<f64>>,
+    /// Retired rows at the front of every run.
+    start: usize,
+}
+
+impl Window {
+    fn len(&self) -> usize {
+        self.y.first().map_or(0, |y| y.len() - self.start)
+    }
+
+    fn push_back(&mut self, x: &[[f64; 2]], y: &[u8]) {
+        if self.x.is_empty() {
+            self.x = vec![Vec::new(); x.len()];
+            self.y = vec![Vec::new(); x.len()];
+        }
+        for (k, (&xk, &yk)) in x.iter().zip(y).enumerate() {
+            self.x[k].push(xk);
+            self.y[k].push(yk as f64);
+        }
+    }
+
+    fn pop_front(&mut self) {
+        if self.len() == 0 {
+            return;
+        }
+        self.start += 1;
+        if self.start >= self.len() {
+            for (x, y) in self.x.iter_mut().zip(&mut self.y) {
+                x.drain(..self.start);
+                y.drain(..self.start);
+            }
+            self.start = 0;
+        }
+    }
+
+    /// Label `k`'s live run, oldest first.
+    fn label(&self, k: usize) -> (&[[f64; 2]], &[f64]) {
+        (&self.x[k][self.start..], &self.y[k][self.start..])
+    }
+
+    /// The rounds, oldest first, as rows: `(x per label, truth per label)`.
+    fn rows(&self) -> impl Iterator<Item = (Vec<[f64; 2]>, Vec<u8>)> + '_ {
+        (self.start..self.start + self.len()).map(move |i| {
+            (
+                self.x.iter().map(|x| x[i]).collect(),
+                self.y.iter().map(|y| y[i] as u8).collect(),
+            )
+        })
+    }
+}
+
+impl PartialEq for Window {
+    /// The same rounds, wherever the compaction left them.
+    fn eq(&self, other: &Self) -> bool {
+        self.len() == other.len() && self.rows().eq(other.rows())
+    }
+}
+
+impl serde::Serialize for Window {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_seq(self.rows())
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for Window {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let rows = Vec::<(Vec<[f64; 2]>, Vec<u8>)>::deserialize(d)?;
+        let mut w = Window::default();
+        for (x, y) in &rows {
+            if x.len() != y.len() || rows.first().is_some_and(|(x0, _)| x0.len() != x.len()) {
+                return Err(serde::de::Error::custom(
+                    "calibration window: rows of different lengths",
+                ));
+            }
+            w.push_back(x, y);
+        }
+        Ok(w)
     }
 }
 
@@ -336,6 +540,152 @@ mod tests {
             c.push(&[e], &[0.0], &[(e < 0.0) as u8]);
         }
         assert_eq!(c.params(0)[0], 0.05);
+    }
+
+    /// The refit as first written: one pass per Newton step, the sigmoid computed inside the
+    /// accumulation, the whole Hessian summed.
+    fn reference_refit(c: &mut Calibrator) {
+        let add = |acc: &mut Acc, th: &Params, x: [f64; 2], y: u8| {
+            let f = [x[0], x[1], 1.0];
+            let p = sigmoid(th[0] * f[0] + th[1] * f[1] + th[2]);
+            let r = p - y as f64;
+            let w = p * (1.0 - p);
+            for i in 0..3 {
+                acc.g[i] += r * f[i];
+                for j in 0..3 {
+                    acc.h[i][j] += w * f[i] * f[j];
+                }
+            }
+        };
+        for _ in 0..c.steps {
+            let mut acc = Acc::default();
+            for (x, y) in c.rounds.rows() {
+                for k in (0..c.l).filter(|&k| y[k] <= 1) {
+                    add(&mut acc, &c.pooled, x[k], y[k]);
+                }
+            }
+            c.pooled = c.clamp(acc.step(c.pooled, IDENTITY, c.pooled_prior));
+        }
+        let centre = c.pooled;
+        for k in 0..c.l {
+            let mut th = c.per_label[k];
+            for _ in 0..c.steps {
+                let mut acc = Acc::default();
+                for (x, y) in c.rounds.rows().filter(|(_, y)| y[k] <= 1) {
+                    add(&mut acc, &th, x[k], y[k]);
+                }
+                th = c.clamp(acc.step(th, centre, c.label_prior));
+            }
+            c.per_label[k] = th;
+        }
+    }
+
+    #[test]
+    fn the_vectorised_refit_gives_the_reference_fit() {
+        // Partial truths (2 = unknown) included, and two Newton steps per refit.
+        let mut fast = Calibrator::new(3, 60, 20.0, 5.0, 2, 0.05);
+        let mut slow = fast.clone();
+        let mut s = 3u64;
+        for round in 0..200 {
+            let e: Vec<f64> = (0..3).map(|_| 8.0 * lcg(&mut s) - 4.0).collect();
+            let p: Vec<f64> = (0..3).map(|_| 3.0 * lcg(&mut s) - 2.0).collect();
+            let y: Vec<u8> = (0..3)
+                .map(|k| {
+                    if round % 7 == k {
+                        2
+                    } else {
+                        (lcg(&mut s) < sigmoid(0.7 * e[k] + p[k])) as u8
+                    }
+                })
+                .collect();
+            fast.push(&e, &p, &y);
+            // The same window, refitted from the same start the first way.
+            slow = Calibrator {
+                rounds: fast.rounds.clone(),
+                pushed: fast.pushed,
+                ..slow
+            };
+            reference_refit(&mut slow);
+            let close = |a: &Params, b: &Params| {
+                a.iter()
+                    .zip(b)
+                    .all(|(x, y)| (x - y).abs() <= 1e-12 * (1.0 + y.abs()))
+            };
+            assert!(close(&fast.pooled, &slow.pooled), "round {round}");
+            for k in 0..3 {
+                assert!(
+                    close(&fast.per_label[k], &slow.per_label[k]),
+                    "round {round}"
+                );
+            }
+            // Each refit starts from the other's last fit: the two are compared step by step.
+            slow.pooled = fast.pooled;
+            slow.per_label = fast.per_label.clone();
+        }
+    }
+
+    #[test]
+    fn exp_by_arithmetic_is_within_two_ulp_of_libm() {
+        let ulps = |a: f64, b: f64| (a.to_bits() as i64 - b.to_bits() as i64).unsigned_abs();
+        let mut x = 0.0f64;
+        let mut worst = 0;
+        while x >= -708.0 {
+            for v in [x, x - 1e-7, x * 0.999_999_7] {
+                if v >= -708.0 {
+                    worst = worst.max(ulps(exp_nonpositive(v), v.exp()));
+                }
+            }
+            x -= 0.0137;
+        }
+        assert!(worst <= 2, "{worst} ulp");
+        assert_eq!(exp_nonpositive(0.0), 1.0);
+        assert_eq!(exp_nonpositive(-0.0), 1.0);
+        assert_eq!(exp_nonpositive(-709.0), 0.0);
+        assert_eq!(exp_nonpositive(f64::NEG_INFINITY), 0.0);
+        for z in [-40.0, -3.0, -0.5, 0.0, 0.5, 3.0, 40.0, 800.0, -800.0] {
+            assert!((sigmoid_fit(z) - sigmoid(z)).abs() <= 4.0 * f64::EPSILON * sigmoid(z));
+        }
+    }
+
+    #[test]
+    fn a_pass_gives_the_same_bits_on_every_path() {
+        let mut s = 9u64;
+        for n in [0usize, 1, 3, 4, 5, 63, 500] {
+            let x: Vec<[f64; 2]> = (0..n)
+                .map(|_| [60.0 * lcg(&mut s) - 30.0, 6.0 * lcg(&mut s) - 3.0])
+                .collect();
+            let y: Vec<f64> = (0..n).map(|_| (lcg(&mut s) < 0.3) as u8 as f64).collect();
+            let th = [0.8, 1.3, -0.2];
+            let (a, b) = (pass(&th, &x, &y), pass_body(&th, &x, &y));
+            assert_eq!(a.g.map(f64::to_bits), b.g.map(f64::to_bits), "n {n}");
+            assert_eq!(a.h, b.h, "n {n}");
+        }
+    }
+
+    #[test]
+    fn the_window_is_saved_as_the_list_of_rounds_it_was() {
+        use std::collections::VecDeque;
+        let mut c = Calibrator::new(2, 3, 1.0, 1.0, 1, 0.05);
+        let mut rows: VecDeque<(Vec<[f64; 2]>, Vec<u8>)> = VecDeque::new();
+        for i in 0..11u8 {
+            let (e, p, y) = ([i as f64, -(i as f64)], [0.5, -0.25 * i as f64], [i % 2, 2]);
+            c.push(&e, &p, &y);
+            rows.push_back((vec![[e[0], p[0]], [e[1], p[1]]], y.to_vec()));
+            if rows.len() > 3 {
+                rows.pop_front();
+            }
+            let saved = serde_json::to_value(&c.rounds).unwrap();
+            assert_eq!(saved, serde_json::to_value(&rows).unwrap(), "after {i}");
+            let back: Window = serde_json::from_value(saved).unwrap();
+            assert_eq!(back, c.rounds);
+        }
+        // A restored calibrator refits as the one that was saved.
+        let mut back: Calibrator =
+            serde_json::from_str(&serde_json::to_string(&c).unwrap()).unwrap();
+        c.push(&[1.0, 2.0], &[0.0, 0.0], &[1, 0]);
+        back.push(&[1.0, 2.0], &[0.0, 0.0], &[1, 0]);
+        assert_eq!(back, c);
+        assert!(serde_json::from_str::<Window>("[[[[1.0, 2.0]], [1, 0]]]").is_err());
     }
 
     #[test]
