@@ -113,28 +113,64 @@ impl Cells {
         std::array::from_fn(|j| self.c[(4 * m + j) * self.l + k])
     }
 
-    /// Adds one neighbour's row `(t, r)` for member `m` with weight `w`: `w t_k` and
+    /// Adds one neighbour (soft truths `t`, weight `w`, its presence flags and reports per
+    /// reporter) for every member of `coalition` it has a report from: `w t_k` and
     /// `w (1 - t_k)` to the first and third cells where the member reported `k`, to the second
     /// and fourth where it did not. Branch-free: the other two cells get `x * 0 = 0`, which
     /// leaves a non-negative sum as it was, bit for bit; each sum takes its terms in the
     /// neighbours' order, as the per-label loop did. The AVX2 path does the same multiplies
     /// and adds (no FMA) four labels at a time, so it gives the same bits (tested).
     #[inline]
-    fn add_row(&mut self, m: usize, t: &[f64], r: &[u8], w: f64) {
+    fn add_neighbour(
+        &mut self,
+        t: &[f64],
+        w: f64,
+        coalition: &[usize],
+        present: &[u8],
+        reps: &[u8],
+    ) {
         let l = self.l;
-        let block = &mut self.c[4 * m * l..4 * (m + 1) * l];
-        let (t, r) = (&t[..l], &r[..l]);
+        let t = &t[..l];
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") {
             // SAFETY: the feature this function is compiled for was just detected.
-            unsafe { add_row_avx2(block, t, r, w) };
+            unsafe { add_neighbour_avx2(&mut self.c, t, w, coalition, present, reps) };
             return;
         }
-        add_row_scalar(block, t, r, w, 0);
+        add_neighbour_body(&mut self.c, t, w, coalition, present, reps, false);
     }
 }
 
-/// [`Cells::add_row`] from label `from` on, one label at a time.
+/// [`Cells::add_neighbour`]: with `wide`, four labels a step through AVX2 for every member
+/// (only from `add_neighbour_avx2`), then the rest one at a time.
+#[inline(always)]
+fn add_neighbour_body(
+    c: &mut [f64],
+    t: &[f64],
+    w: f64,
+    coalition: &[usize],
+    present: &[u8],
+    reps: &[u8],
+    wide: bool,
+) {
+    let l = t.len();
+    let mut from = 0;
+    #[cfg(target_arch = "x86_64")]
+    if wide {
+        // SAFETY: `wide` is set only by `add_neighbour_avx2`, compiled for AVX2 and called
+        // where it was detected.
+        from = unsafe { add_neighbour_wide(c, t, w, coalition, present, reps) };
+    }
+    for (m, &i) in coalition.iter().enumerate() {
+        if present[i] == 0 {
+            continue;
+        }
+        let block = &mut c[4 * m * l..4 * (m + 1) * l];
+        add_row_scalar(block, t, &reps[i * l..(i + 1) * l], w, from);
+    }
+}
+
+/// Labels `from..` of one member's row, one at a time.
 #[inline(always)]
 fn add_row_scalar(block: &mut [f64], t: &[f64], r: &[u8], w: f64, from: usize) {
     let l = t.len();
@@ -152,38 +188,73 @@ fn add_row_scalar(block: &mut [f64], t: &[f64], r: &[u8], w: f64, from: usize) {
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn add_row_avx2(block: &mut [f64], t: &[f64], r: &[u8], w: f64) {
+unsafe fn add_neighbour_avx2(
+    c: &mut [f64],
+    t: &[f64],
+    w: f64,
+    coalition: &[usize],
+    present: &[u8],
+    reps: &[u8],
+) {
+    add_neighbour_body(c, t, w, coalition, present, reps, true);
+}
+
+/// The full four-label steps of a neighbour for every member (the weighted soft truths once per
+/// step, shared by the members); returns where they stopped.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn add_neighbour_wide(
+    c: &mut [f64],
+    t: &[f64],
+    w: f64,
+    coalition: &[usize],
+    present: &[u8],
+    reps: &[u8],
+) -> usize {
     use std::arch::x86_64::*;
     let l = t.len();
-    assert!(block.len() == 4 * l && r.len() == l);
+    let members = coalition.len();
+    assert!(c.len() >= 4 * members * l);
+    assert!(coalition
+        .iter()
+        .all(|&i| i < present.len() && (i + 1) * l <= reps.len()));
     let wv = _mm256_set1_pd(w);
     let one = _mm256_set1_pd(1.0);
     let bit = |v: u8| (v != 0) as u8 as f64;
-    let c = block.as_mut_ptr();
+    let base = c.as_mut_ptr();
     let mut k = 0;
     while k + 4 <= l {
-        // SAFETY: k + 4 <= l, and `block` holds 4 l values (asserted above).
+        // SAFETY: k + 4 <= l; every member's block of 4 l cells lies in `c`, and every
+        // member's reports in `reps` (asserted above).
         unsafe {
             let tk = _mm256_loadu_pd(t.as_ptr().add(k));
             let pos_w = _mm256_mul_pd(wv, tk);
             let neg_w = _mm256_mul_pd(wv, _mm256_sub_pd(one, tk));
-            let on = _mm256_set_pd(bit(r[k + 3]), bit(r[k + 2]), bit(r[k + 1]), bit(r[k]));
-            let off = _mm256_sub_pd(one, on);
-            for (j, v) in [
-                (0, pos_w, on),
-                (1, pos_w, off),
-                (2, neg_w, on),
-                (3, neg_w, off),
-            ]
-            .map(|(j, a, b)| (j, _mm256_mul_pd(a, b)))
-            {
-                let p = c.add(j * l + k);
-                _mm256_storeu_pd(p, _mm256_add_pd(_mm256_loadu_pd(p), v));
+            for (m, &i) in coalition.iter().enumerate() {
+                if present[i] == 0 {
+                    continue;
+                }
+                let r = reps.as_ptr().add(i * l + k);
+                let on = _mm256_set_pd(bit(*r.add(3)), bit(*r.add(2)), bit(*r.add(1)), bit(*r));
+                let off = _mm256_sub_pd(one, on);
+                let block = base.add(4 * m * l + k);
+                for (j, v) in [
+                    (0, pos_w, on),
+                    (1, pos_w, off),
+                    (2, neg_w, on),
+                    (3, neg_w, off),
+                ]
+                .map(|(j, a, b)| (j, _mm256_mul_pd(a, b)))
+                {
+                    let p = block.add(j * l);
+                    _mm256_storeu_pd(p, _mm256_add_pd(_mm256_loadu_pd(p), v));
+                }
             }
         }
         k += 4;
     }
-    add_row_scalar(block, t, r, w, k);
+    k
 }
 
 const REBASE_HALF_LIVES: f64 = 40.0;
@@ -754,12 +825,7 @@ impl Adaptive {
                 // One row holds all of these (`rows.rs`): a neighbour's few cache lines.
                 let t = pool.soft(pos);
                 let (present, reps) = (pool.present_row(pos), pool.reports_row(pos));
-                for (m, &i) in coalition.iter().enumerate() {
-                    if present[i] == 0 {
-                        continue;
-                    }
-                    acc.add_row(m, t, &reps[i * l..(i + 1) * l], w);
-                }
+                acc.add_neighbour(t, w, &coalition, present, reps);
             }
             for e in nb.iter().take(cfg.k_prior) {
                 let pos = e.pos as usize;
@@ -1463,10 +1529,10 @@ impl Adaptive {
 
 #[cfg(test)]
 mod cells_tests {
-    use super::{add_row_scalar, Cells};
+    use super::{add_neighbour_body, Cells};
 
     #[test]
-    fn every_path_of_add_row_gives_the_per_label_sums_bit_for_bit() {
+    fn every_path_of_add_neighbour_gives_the_per_label_sums_bit_for_bit() {
         let mut s = 7u64;
         let mut next = || {
             s = s
@@ -1484,10 +1550,14 @@ mod cells_tests {
             for _ in 0..60 {
                 let w = next() * 0.9;
                 let t: Vec<f64> = (0..l).map(|_| next()).collect();
-                for m in 0..members {
-                    let r: Vec<u8> = (0..l).map(|_| (next() < 0.4) as u8).collect();
-                    fast.add_row(m, &t, &r, w);
-                    add_row_scalar(&mut plain[4 * m * l..4 * (m + 1) * l], &t, &r, w, 0);
+                // Member 1 is absent from every other neighbour.
+                let present: Vec<u8> = vec![1, (next() < 0.5) as u8, 1];
+                let reps: Vec<u8> = (0..members * l).map(|_| (next() < 0.4) as u8).collect();
+                let coalition = [0usize, 1, 2];
+                fast.add_neighbour(&t, w, &coalition, &present, &reps);
+                add_neighbour_body(&mut plain, &t, w, &coalition, &present, &reps, false);
+                for m in (0..members).filter(|&m| present[m] != 0) {
+                    let r = &reps[m * l..(m + 1) * l];
                     for k in 0..l {
                         let c = &mut reference[m * l + k];
                         let (pos_w, neg_w) = (w * t[k], w * (1.0 - t[k]));
