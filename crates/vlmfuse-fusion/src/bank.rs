@@ -556,12 +556,30 @@ impl Bank {
         m: usize,
         first: Option<(&[f32], &[f64])>,
     ) -> Vec<Neighbour> {
+        self.top_among_known(x, pos, m, first, None)
+    }
+
+    /// [`Bank::top_among_with`], also reusing the exact cosines the same query's scan already
+    /// computed: `known[j]` is [`Bank::sim`]`(x, j)` where not NaN (the same function, so the
+    /// same bits and the same result), and only the other survivors are scored here.
+    pub fn top_among_known(
+        &self,
+        x: &[f64],
+        pos: &[usize],
+        m: usize,
+        first: Option<(&[f32], &[f64])>,
+        known: Option<&[f64]>,
+    ) -> Vec<Neighbour> {
+        let sim = |j: usize| match known.and_then(|k| k.get(j)) {
+            Some(&v) if !v.is_nan() => v,
+            _ => self.sim(x, j),
+        };
         let m = m.min(pos.len());
         if m == 0 {
             return Vec::new();
         }
         if pos.len() <= 4 * m || self.mirror.len() != self.len() * self.dim {
-            return self.select(pos.iter().map(|&j| (j, self.sim(x, j))), m);
+            return self.select(pos.iter().map(|&j| (j, sim(j))), m);
         }
         let approx: Vec<(f64, f64)> = match first {
             Some((a, b)) if pos.iter().all(|&j| j < a.len() && j < b.len()) => {
@@ -584,7 +602,7 @@ impl Bank {
             .iter()
             .zip(&approx)
             .filter(|(_, &(a, b))| a + b >= cut)
-            .map(|(&j, _)| (j, self.sim(x, j)));
+            .map(|(&j, _)| (j, sim(j)));
         self.select(survivors, m)
     }
 
@@ -865,6 +883,15 @@ mod tests {
                     b.top_among_with(&q, &subset, m, first),
                     brute,
                     "reused {qi} {m}"
+                );
+                // Exact cosines known for some entries (a scan's survivors) give the same.
+                let known: Vec<f64> = (0..5000)
+                    .map(|j| if j % 5 == 0 { b.sim(&q, j) } else { f64::NAN })
+                    .collect();
+                assert_eq!(
+                    b.top_among_known(&q, &subset, m, first, Some(&known)),
+                    brute,
+                    "known {qi} {m}"
                 );
                 let short = Some((&approx[..4000], &bound[..4000]));
                 assert_eq!(

@@ -254,7 +254,7 @@ impl Default for AdaptiveConfig {
             corr_shrink: 50.0,
             unlabelled_ramp: 20.0,
             refresh_max: 50,
-            em_chunk: 16,
+            em_chunk: 10,
             pool_max: 100_000,
             compact_contexts: true,
             ann_min: 20_000,

@@ -661,7 +661,7 @@ impl Adaptive {
         let g = &self.global;
         let u = Self::unlabelled_weight(cx);
         let moved = (u - g.unlabelled).abs() > UNLABELLED_REBUILD * u.max(g.unlabelled);
-        let worn = g.updates > self.pool.len().max(64);
+        let worn = g.updates > 4 * self.pool.len().max(64);
         if moved || worn || (h > 0.0 && (cx.labelled - g.base) as f64 > REBASE_HALF_LIVES * h) {
             self.global_rebuild(cx);
         }

@@ -249,9 +249,17 @@ impl PaperCandidate {
             match first.filter(covered) {
                 // The scan's exact cosines: the exact ranking `top_among` would compute.
                 Some(FirstPass::Exact(sims)) => bank.select(pos.iter().map(|&j| (j, sims[j])), m),
-                Some(FirstPass::Approx { approx, bound }) => {
-                    bank.top_among_with(&round.context, &pos, m, Some((approx, bound)))
-                }
+                Some(FirstPass::Approx {
+                    approx,
+                    bound,
+                    known,
+                }) => bank.top_among_known(
+                    &round.context,
+                    &pos,
+                    m,
+                    Some((approx, bound)),
+                    Some(known),
+                ),
                 None => bank.top_among(&round.context, &pos, m),
             }
         };

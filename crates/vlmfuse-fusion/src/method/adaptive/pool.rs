@@ -55,7 +55,13 @@ pub enum FirstPass {
     Exact(Vec<f64>),
     /// Approximate cosines and the rigorous bounds on their errors
     /// ([`crate::bank::Bank::approx_with_bounds`]).
-    Approx { approx: Vec<f32>, bound: Vec<f64> },
+    Approx {
+        approx: Vec<f32>,
+        bound: Vec<f64>,
+        /// The exact cosines the scan computed (its survivors), NaN elsewhere: the `paper`
+        /// candidate's search of the same round reuses them instead of scoring them again.
+        known: Vec<f64>,
+    },
 }
 
 impl FirstPass {
@@ -889,6 +895,24 @@ impl Pool {
         let by_sim = self.half_life <= 0.0 && self.worst_sim.len() == len;
         let first = self.bank.approx_with_bounds(x);
         let mut exact: Option<Vec<f64>> = None;
+        // Exact cosines computed so far (NaN: not yet): an entry both a reverse candidate and
+        // a survivor is scored once, and the `paper` candidate reuses them (`FirstPass`).
+        let mut known: Vec<f64> = if first.is_some() {
+            vec![f64::NAN; len]
+        } else {
+            Vec::new()
+        };
+        let bank = &self.bank;
+        let mut sim_of = |j: usize| {
+            let v = known[j];
+            if v.is_nan() {
+                let s = bank.sim(x, j);
+                known[j] = s;
+                s
+            } else {
+                v
+            }
+        };
         match first.as_ref().map(|(a, b)| (a, b)) {
             Some((approx, bound)) if by_sim => {
                 // Without decay the weight `max(0, s)^tau` is a non-decreasing function of the
@@ -900,7 +924,7 @@ impl Pool {
                     let a = approx[j] as f64;
                     lo.push(a - bound[j]);
                     if a + bound[j] >= self.worst_sim[j] {
-                        let sim = self.bank.sim(x, j);
+                        let sim = sim_of(j);
                         if sim >= self.worst_sim[j] {
                             rev.push((j, sim));
                         }
@@ -910,7 +934,7 @@ impl Pool {
                     let (_, &mut cut, _) = lo.select_nth_unstable_by(m - 1, |a, b| b.total_cmp(a));
                     for j in 0..len {
                         if approx[j] as f64 + bound[j] >= cut {
-                            let sim = self.bank.sim(x, j);
+                            let sim = sim_of(j);
                             top.push(self.nb_at(j, sim, at));
                         }
                     }
@@ -943,7 +967,7 @@ impl Pool {
                         Some(w) => self.key(up, at, self.clock[j]) >= w.key,
                     };
                     if reach {
-                        let sim = self.bank.sim(x, j);
+                        let sim = sim_of(j);
                         if newcomer_beats(j, sim) {
                             rev.push((j, sim));
                         }
@@ -955,7 +979,7 @@ impl Pool {
                     for j in 0..len {
                         let up = self.key(approx[j] as f64 + bound[j], self.clock[j], at);
                         if up >= cut {
-                            let sim = self.bank.sim(x, j);
+                            let sim = sim_of(j);
                             top.push(self.nb_at(j, sim, at));
                         }
                     }
@@ -971,9 +995,11 @@ impl Pool {
             cell: None,
             first_pass: match (exact, first) {
                 (Some(e), _) => Some(std::sync::Arc::new(FirstPass::Exact(e))),
-                (None, Some((approx, bound))) => {
-                    Some(std::sync::Arc::new(FirstPass::Approx { approx, bound }))
-                }
+                (None, Some((approx, bound))) => Some(std::sync::Arc::new(FirstPass::Approx {
+                    approx,
+                    bound,
+                    known,
+                })),
                 (None, None) => None,
             },
         }
