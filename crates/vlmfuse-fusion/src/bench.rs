@@ -330,6 +330,81 @@ pub fn fuse_feedback(
     })
 }
 
+/// What [`fuse_feedback_paired`] measured: per phase, the two methods' mean cost per round and
+/// the median over blocks of the ratio `adaptive / paper`.
+#[derive(Debug, Clone, Copy)]
+pub struct PairedTimes {
+    pub blocks: usize,
+    pub paper_labelled_us: f64,
+    pub adaptive_labelled_us: f64,
+    pub labelled_ratio: f64,
+    pub paper_unlabelled_us: f64,
+    pub adaptive_unlabelled_us: f64,
+    pub unlabelled_ratio: f64,
+}
+
+/// [`fuse_feedback`]'s workload under both methods at once: two engines filled from the same
+/// rounds, then the same live rounds in blocks of `block`, each block run by `paper` and then by
+/// `adaptive` (labelled rounds first, then as many unlabelled ones). Each block gives one ratio
+/// of the two times; their median is the figure. A machine that slows down for a second or two
+/// (a shared host) inflates one method's whole run in [`fuse_feedback`], but only a block or
+/// two here, and the median ignores them.
+pub fn fuse_feedback_paired(
+    bank: usize,
+    dim: usize,
+    reporters: usize,
+    rounds: usize,
+    block: usize,
+) -> Result<PairedTimes, FusionError> {
+    let block = block.max(1);
+    let l = Ontology::paper().len();
+    let synth = Synth::new(42, dim, reporters, l);
+    let mut engines = [
+        filled_engine(Method::Paper, bank, reporters, &mut synth.reseeded(42))?,
+        filled_engine(Method::Adaptive, bank, reporters, &mut synth.reseeded(42))?,
+    ];
+    // The live rounds, drawn once: both engines see the same ones, in the same order.
+    let mut live = synth.reseeded(7);
+    let labelled: Vec<SynthRound> = (0..rounds).map(|_| live.round()).collect();
+    let unlabelled: Vec<SynthRound> = (0..rounds).map(|_| live.round()).collect();
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+    };
+    let mut sums = [[0.0f64; 2]; 2];
+    let mut ratios = [Vec::new(), Vec::new()];
+    for (phase, set) in [&labelled, &unlabelled].into_iter().enumerate() {
+        for (b, chunk) in set.chunks(block).enumerate() {
+            let mut t = [0.0f64; 2];
+            for (m, engine) in engines.iter_mut().enumerate() {
+                let start = Instant::now();
+                for (i, s) in chunk.iter().enumerate() {
+                    let seq = (bank + phase * rounds + b * block + i) as u64;
+                    if phase == 0 {
+                        fuse_feedback_round(engine, s.clone(), seq)?;
+                    } else {
+                        let inf = engine.infer(&s.round);
+                        engine.observe(seq, &s.round, &inf)?;
+                    }
+                }
+                t[m] = start.elapsed().as_secs_f64();
+                sums[phase][m] += t[m];
+            }
+            ratios[phase].push(t[1] / t[0]);
+        }
+    }
+    let per = |v: f64| v / rounds.max(1) as f64 * 1e6;
+    Ok(PairedTimes {
+        blocks: ratios[0].len(),
+        paper_labelled_us: per(sums[0][0]),
+        adaptive_labelled_us: per(sums[0][1]),
+        labelled_ratio: median(&mut ratios[0]),
+        paper_unlabelled_us: per(sums[1][0]),
+        adaptive_unlabelled_us: per(sums[1][1]),
+        unlabelled_ratio: median(&mut ratios[1]),
+    })
+}
+
 /// Random keys and queries for the similarity benchmark: `(queries q x d, keys b x d)`, row-major.
 pub fn similarity_inputs(q: usize, b: usize, d: usize, seed: u64) -> (Vec<f64>, Vec<f64>) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
@@ -446,5 +521,9 @@ mod tests {
         let sum: f64 = out.iter().sum();
         assert!((sum - similarities_per_query(&q, &k, 4)).abs() < 1e-12);
         assert!(percentile(&[], 0.5).is_nan());
+        let p = fuse_feedback_paired(40, 8, 3, 12, 5).unwrap();
+        assert_eq!(p.blocks, 3);
+        assert!(p.labelled_ratio > 0.0 && p.unlabelled_ratio > 0.0);
+        assert!(p.paper_labelled_us > 0.0 && p.adaptive_unlabelled_us > 0.0);
     }
 }

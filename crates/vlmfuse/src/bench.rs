@@ -7,7 +7,7 @@ use crate::eval::{self, EvalArgs};
 use clap::Args;
 use std::io::Write;
 use std::time::Instant;
-use vlmfuse_fusion::bench::{fuse_feedback, knn, synthetic_records};
+use vlmfuse_fusion::bench::{fuse_feedback, fuse_feedback_paired, knn, synthetic_records};
 use vlmfuse_fusion::{FusionConfig, Method, Ontology};
 
 #[derive(Args, Debug)]
@@ -534,8 +534,42 @@ fn engine_bench(args: &BenchArgs) -> anyhow::Result<()> {
             let _ = std::io::stdout().flush();
         }
     }
+    // The same workload with the two methods interleaved block by block (see
+    // `fuse_feedback_paired`): the ratio that a busy machine cannot skew.
+    println!(
+        "interleaved, blocks of {PAIRED_BLOCK} rounds run by paper then adaptive; median of the \
+         per-block ratios"
+    );
+    println!(
+        "{:>9} {:>16} {:>19} {:>9} {:>18} {:>21} {:>9}",
+        "bank",
+        "paper lab. (us)",
+        "adaptive lab. (us)",
+        "ratio",
+        "paper unlab. (us)",
+        "adaptive unlab. (us)",
+        "ratio"
+    );
+    for &bank in &args.banks {
+        let p = fuse_feedback_paired(bank, args.dim, args.reporters, args.rounds, PAIRED_BLOCK)?;
+        println!(
+            "{:>9} {:>16.1} {:>19.1} {:>8.2}x {:>18.1} {:>21.1} {:>8.2}x",
+            bank,
+            p.paper_labelled_us,
+            p.adaptive_labelled_us,
+            p.labelled_ratio,
+            p.paper_unlabelled_us,
+            p.adaptive_unlabelled_us,
+            p.unlabelled_ratio
+        );
+        let _ = std::io::stdout().flush();
+    }
     Ok(())
 }
+
+/// Rounds per block of the interleaved benchmark: long enough to time (about 10 ms at bank
+/// 1k), short enough that a slow second of the machine spoils only a few blocks.
+const PAIRED_BLOCK: usize = 25;
 
 fn knn_bench(args: &BenchArgs) -> anyhow::Result<()> {
     let t = knn(args.dim, args.reporters)?;
