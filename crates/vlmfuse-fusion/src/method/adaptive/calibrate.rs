@@ -100,8 +100,8 @@ const LANES: usize = 4;
 #[inline(always)]
 fn exp_nonpositive(x: f64) -> f64 {
     const MAGIC: f64 = 6755399441055744.0; // 1.5 * 2^52: adding it rounds to an integer
-    const LN2_HI: f64 = 6.931_471_803_691_238_164_9e-1;
-    const LN2_LO: f64 = 1.908_214_929_270_587_700_0e-10;
+    const LN2_HI: f64 = 6.931_471_803_691_238e-1; // ln 2, the high part: 0x3fe62e42fee00000
+    const LN2_LO: f64 = 1.908_214_929_270_587_7e-10; // ln 2 - LN2_HI: 0x3dea39ef35793c76
     let xc = x.max(-708.0);
     let shifted = xc * std::f64::consts::LOG2_E + MAGIC;
     let n = shifted - MAGIC;

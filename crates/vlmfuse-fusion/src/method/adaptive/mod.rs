@@ -144,62 +144,54 @@ impl Cells {
         ]
     }
 
-    /// Adds one neighbour (soft truths `t`, weight `w`, its presence flags and reports per
-    /// reporter) for every member of `coalition`. The AVX2 path does the same multiplies and
-    /// adds (no FMA) four labels at a time, so it gives the same bits (tested).
+    /// Adds one neighbour for every member of the coalition. The AVX2 path does the same
+    /// multiplies and adds (no FMA) four labels at a time, so it gives the same bits (tested).
     #[inline]
-    fn add_neighbour(
-        &mut self,
-        t: &[f64],
-        w: f64,
-        coalition: &[usize],
-        present: &[u8],
-        reps: &[u8],
-    ) {
-        let t = &t[..self.l];
+    fn add_neighbour(&mut self, nb: &NeighbourRow) {
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") {
             // SAFETY: the feature this function is compiled for was just detected.
-            unsafe { add_neighbour_avx2(self, t, w, coalition, present, reps) };
+            unsafe { add_neighbour_avx2(self, nb) };
             return;
         }
-        add_neighbour_body(self, t, w, coalition, present, reps, false);
+        add_neighbour_body(self, nb, false);
     }
+}
+
+/// What a neighbour adds to a round's [`Cells`]: its soft truths `t` (one per label), its
+/// weight `w`, and its presence flags and reports per reporter, for the round's coalition.
+struct NeighbourRow<'a> {
+    t: &'a [f64],
+    w: f64,
+    coalition: &'a [usize],
+    present: &'a [u8],
+    reps: &'a [u8],
 }
 
 /// [`Cells::add_neighbour`]: with `wide`, four labels a step through AVX2 (only from
 /// `add_neighbour_avx2`), then the rest one at a time.
 #[inline(always)]
-fn add_neighbour_body(
-    c: &mut Cells,
-    t: &[f64],
-    w: f64,
-    coalition: &[usize],
-    present: &[u8],
-    reps: &[u8],
-    wide: bool,
-) {
-    let l = t.len();
+fn add_neighbour_body(c: &mut Cells, nb: &NeighbourRow, wide: bool) {
+    let (l, t, w) = (c.l, nb.t, nb.w);
     let mut from = 0;
     #[cfg(target_arch = "x86_64")]
     if wide {
         // SAFETY: `wide` is set only by `add_neighbour_avx2`, compiled for AVX2 and called
         // where it was detected.
-        from = unsafe { add_neighbour_wide(c, t, w, coalition, present, reps) };
+        from = unsafe { add_neighbour_wide(c, nb) };
     }
-    for k in from..l {
-        let tk = t[k];
+    for (k, &tk) in t.iter().enumerate().take(l).skip(from) {
         let (pos_w, neg_w) = (w * tk, w * (1.0 - tk));
         c.s_pos[k] += pos_w;
         c.s_neg[k] += neg_w;
-        for (m, &i) in coalition.iter().enumerate() {
+        for (m, &i) in nb.coalition.iter().enumerate() {
             let idx = m * l + k;
-            if present[i] == 0 {
+            if nb.present[i] == 0 {
                 c.absent_pos[idx] += pos_w;
                 c.absent_neg[idx] += neg_w;
                 continue;
             }
-            let on = (reps[i * l + k] != 0) as u8 as f64;
+            let on = (nb.reps[i * l + k] != 0) as u8 as f64;
             c.a[idx] += pos_w * on;
             c.b[idx] += neg_w * on;
         }
@@ -208,31 +200,25 @@ fn add_neighbour_body(
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn add_neighbour_avx2(
-    c: &mut Cells,
-    t: &[f64],
-    w: f64,
-    coalition: &[usize],
-    present: &[u8],
-    reps: &[u8],
-) {
-    add_neighbour_body(c, t, w, coalition, present, reps, true);
+unsafe fn add_neighbour_avx2(c: &mut Cells, nb: &NeighbourRow) {
+    add_neighbour_body(c, nb, true);
 }
 
 /// The full four-label steps of a neighbour for every member; returns where they stopped.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 #[inline]
-unsafe fn add_neighbour_wide(
-    c: &mut Cells,
-    t: &[f64],
-    w: f64,
-    coalition: &[usize],
-    present: &[u8],
-    reps: &[u8],
-) -> usize {
+unsafe fn add_neighbour_wide(c: &mut Cells, nb: &NeighbourRow) -> usize {
     use std::arch::x86_64::*;
-    let l = t.len();
+    let l = c.l;
+    let NeighbourRow {
+        t,
+        w,
+        coalition,
+        present,
+        reps,
+    } = *nb;
+    assert!(t.len() >= l);
     let n = coalition.len() * l;
     assert!(c.a.len() >= n && c.b.len() >= n && c.absent_pos.len() >= n);
     assert!(c.absent_neg.len() >= n && c.s_pos.len() >= l && c.s_neg.len() >= l);
@@ -841,7 +827,13 @@ impl Adaptive {
                 // One row holds all of these (`rows.rs`): a neighbour's few cache lines.
                 let t = pool.soft(pos);
                 let (present, reps) = (pool.present_row(pos), pool.reports_row(pos));
-                acc.add_neighbour(t, w, &coalition, present, reps);
+                acc.add_neighbour(&NeighbourRow {
+                    t,
+                    w,
+                    coalition: &coalition,
+                    present,
+                    reps,
+                });
             }
             for e in nb.iter().take(cfg.k_prior) {
                 let pos = e.pos as usize;
@@ -1545,7 +1537,7 @@ impl Adaptive {
 
 #[cfg(test)]
 mod cells_tests {
-    use super::{add_neighbour_body, Cells};
+    use super::{add_neighbour_body, Cells, NeighbourRow};
 
     #[test]
     fn every_path_of_add_neighbour_gives_the_same_cells_as_the_four_sums() {
@@ -1570,8 +1562,15 @@ mod cells_tests {
                 let present: Vec<u8> = vec![1, (next() < 0.5) as u8, 1];
                 let reps: Vec<u8> = (0..members * l).map(|_| (next() < 0.4) as u8).collect();
                 let coalition = [0usize, 1, 2];
-                fast.add_neighbour(&t, w, &coalition, &present, &reps);
-                add_neighbour_body(&mut plain, &t, w, &coalition, &present, &reps, false);
+                let nb = NeighbourRow {
+                    t: &t,
+                    w,
+                    coalition: &coalition,
+                    present: &present,
+                    reps: &reps,
+                };
+                fast.add_neighbour(&nb);
+                add_neighbour_body(&mut plain, &nb, false);
                 for m in (0..members).filter(|&m| present[m] != 0) {
                     let r = &reps[m * l..(m + 1) * l];
                     for k in 0..l {
