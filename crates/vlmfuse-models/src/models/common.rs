@@ -15,7 +15,8 @@ use crate::models::video_llava::text::{KvCache, LlamaText};
 use crate::weights::{var_builder, WeightSource};
 use crate::ModelError;
 
-/// How to load a checkpoint of a family without options of its own (VideoLLaMA2, VLAAD).
+/// How to load a checkpoint of a family without options of its own (Qwen3-VL, VideoLLaMA2,
+/// VLAAD).
 #[derive(Debug, Clone)]
 pub struct LoadOptions {
     pub dtype: DType,

@@ -175,24 +175,8 @@ impl Cache {
     }
 }
 
-/// How to load a checkpoint.
-#[derive(Debug, Clone)]
-pub struct LoadOptions {
-    pub dtype: DType,
-    pub device: Device,
-    /// PEFT LoRA adapter merged into the weights at load.
-    pub adapter: Option<WeightSource>,
-}
-
-impl Default for LoadOptions {
-    fn default() -> Self {
-        Self {
-            dtype: DType::F32,
-            device: Device::Cpu,
-            adapter: None,
-        }
-    }
-}
+/// How to load a checkpoint: the options every family without its own take.
+pub use crate::models::common::LoadOptions;
 
 /// M-RoPE positions of one prompt (`get_rope_index` of the reference): text tokens count up on
 /// all three rows; each run of visual placeholders is one frame of `grids` (`[t, h, w]` in
