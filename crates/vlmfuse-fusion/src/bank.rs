@@ -543,25 +543,15 @@ impl Bank {
     /// the `m`-th best for the exact score: the `adaptive` switch's `paper` candidate searches
     /// its labelled window this way on every labelled round.
     pub fn top_among(&self, x: &[f64], pos: &[usize], m: usize) -> Vec<Neighbour> {
-        self.top_among_with(x, pos, m, None)
+        self.top_among_known(x, pos, m, None, None)
     }
 
-    /// [`Bank::top_among`] reusing a first pass already made over the whole bank for the same
-    /// query (`(approx, bound)` from [`Bank::approx_with_bounds`], covering every entry of
-    /// `pos`): the same values the pass here would compute, so the same result.
-    pub fn top_among_with(
-        &self,
-        x: &[f64],
-        pos: &[usize],
-        m: usize,
-        first: Option<(&[f32], &[f64])>,
-    ) -> Vec<Neighbour> {
-        self.top_among_known(x, pos, m, first, None)
-    }
-
-    /// [`Bank::top_among_with`], also reusing the exact cosines the same query's scan already
-    /// computed: `known[j]` is [`Bank::sim`]`(x, j)` where not NaN (the same function, so the
-    /// same bits and the same result), and only the other survivors are scored here.
+    /// [`Bank::top_among`] reusing what a scan of the same query over the whole bank already
+    /// computed: `first`, its f32 first pass (`(approx, bound)` from
+    /// [`Bank::approx_with_bounds`]; used when it covers every entry of `pos`), the same values
+    /// the pass here would compute; `known`, its exact cosines (`known[j]` is
+    /// [`Bank::sim`]`(x, j)` where not NaN), the same function. So the same bits and the same
+    /// result; only the survivors not already scored are scored here.
     pub fn top_among_known(
         &self,
         x: &[f64],
@@ -880,7 +870,7 @@ mod tests {
                 // misses some positions searched (it is then not used).
                 let first = Some((approx.as_slice(), bound.as_slice()));
                 assert_eq!(
-                    b.top_among_with(&q, &subset, m, first),
+                    b.top_among_known(&q, &subset, m, first, None),
                     brute,
                     "reused {qi} {m}"
                 );
@@ -895,7 +885,7 @@ mod tests {
                 );
                 let short = Some((&approx[..4000], &bound[..4000]));
                 assert_eq!(
-                    b.top_among_with(&q, &subset, m, short),
+                    b.top_among_known(&q, &subset, m, short, None),
                     brute,
                     "short {qi} {m}"
                 );
@@ -903,7 +893,7 @@ mod tests {
             // And it is used: a made-up pass (later entries "closer", no error) decides.
             let fake: Vec<f32> = (0..5000).map(|j| j as f32 / 5000.0).collect();
             let zero = vec![0.0; 5000];
-            let got = b.top_among_with(&q, &subset, 10, Some((&fake, &zero)));
+            let got = b.top_among_known(&q, &subset, 10, Some((&fake, &zero)), None);
             assert!(got.iter().all(|n| n.pos >= 4900), "{got:?}");
         }
         // A query equal to a stored context finds it (and its older duplicate first).
