@@ -215,6 +215,10 @@ pub struct AdaptiveConfig {
     /// `switch`: how much lower another candidate's loss must be than the serving one's before
     /// it serves (hysteresis: no flipping on ties and noise).
     pub switch_margin: f64,
+    /// `switch`: labelled rounds scored before the serving candidate may change at all. Until
+    /// then Dawid–Skene, which needs no label, serves: a loss gap over a handful of rounds is
+    /// mostly noise (the model, too, keeps its initial threshold until `threshold_min_rounds`).
+    pub switch_min_rounds: u64,
     /// `switch`: the `paper` candidate (PAPER-METHOD.md's rule over the pool's labelled
     /// entries) searches only the latest `paper_window` labelled rounds for its neighbours, so
     /// that its cost per round is bounded at any scale (and it forgets what drift made stale).
@@ -282,6 +286,7 @@ impl Default for AdaptiveConfig {
             switch_discount: 0.99,
             switch_fn_cost: 1.5,
             switch_margin: 3.0,
+            switch_min_rounds: 20,
             paper_window: 2_000,
             ds_label_strength: 30.0,
             threshold_initial: 0.505,

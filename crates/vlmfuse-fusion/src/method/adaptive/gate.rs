@@ -11,7 +11,9 @@
 //! The serving candidate changes only when another's loss is lower than its own by more than
 //! `switch_margin`: follow the leader with a hysteresis, so the served loss exceeds the best
 //! candidate's by at most the margin between switches, and a tie never flips the choice. With no
-//! label every loss is zero and the first candidate, Dawid–Skene, serves.
+//! label every loss is zero and the first candidate, Dawid–Skene, serves; it keeps serving until
+//! `switch_min_rounds` labelled rounds have been scored (a loss gap over a handful of rounds is
+//! mostly noise).
 
 use serde::{Deserialize, Serialize};
 
@@ -100,6 +102,19 @@ pub struct CandidateScore {
     pub micro_f1: f64,
 }
 
+/// The switch's constants (docs/METHOD.md §3; `switch_*` in the configuration).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SwitchRule {
+    /// What each candidate's loss so far is multiplied by before a labelled round adds to it.
+    pub discount: f64,
+    /// What a missed label costs, against 1 for a false alarm.
+    pub fn_cost: f64,
+    /// How much lower another candidate's loss must be before it serves.
+    pub margin: f64,
+    /// Labelled rounds scored before the serving candidate may change.
+    pub min_rounds: u64,
+}
+
 /// The switch's state.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Switch {
@@ -130,15 +145,15 @@ impl Switch {
     /// Scores one labelled round: `decisions[c][k]` is candidate `c`'s decision (in
     /// [`Predictor::ALL`] order) on label `k`, `truth[k]` 0, 1 or unknown (> 1, skipped); a
     /// candidate given no decisions (an empty list: one left out by the configuration) is
-    /// neither scored nor chosen. Then the serving candidate is chosen again.
-    pub fn score(
-        &mut self,
-        decisions: &[Vec<bool>; CANDIDATES],
-        truth: &[u8],
-        discount: f64,
-        fn_cost: f64,
-        margin: f64,
-    ) {
+    /// neither scored nor chosen. Then, once `min_rounds` labelled rounds have been scored, the
+    /// serving candidate is chosen again.
+    pub fn score(&mut self, decisions: &[Vec<bool>; CANDIDATES], truth: &[u8], rule: &SwitchRule) {
+        let SwitchRule {
+            discount,
+            fn_cost,
+            margin,
+            min_rounds,
+        } = *rule;
         for (c, dec) in decisions.iter().enumerate() {
             if dec.is_empty() {
                 continue;
@@ -160,6 +175,9 @@ impl Switch {
             k.fneg = discount * k.fneg + fneg;
         }
         self.rounds += 1;
+        if self.rounds < min_rounds {
+            return;
+        }
         // The leader: the lowest loss, ties to the earlier candidate.
         let mut best = 0;
         for (c, dec) in decisions.iter().enumerate().skip(1) {
@@ -194,6 +212,15 @@ impl Switch {
 mod tests {
     use super::*;
 
+    fn rule(discount: f64, fn_cost: f64, margin: f64, min_rounds: u64) -> SwitchRule {
+        SwitchRule {
+            discount,
+            fn_cost,
+            margin,
+            min_rounds,
+        }
+    }
+
     fn dec(v: &[u8]) -> Vec<bool> {
         v.iter().map(|&b| b != 0).collect()
     }
@@ -211,11 +238,11 @@ mod tests {
             Vec::new(),
             Vec::new(),
         ];
-        s.score(&d, &truth, 1.0, 1.5, 3.0);
+        s.score(&d, &truth, &rule(1.0, 1.5, 3.0, 0));
         // Loss 1.5 against 0: within the margin, no switch.
         assert_eq!(s.serving(), Predictor::DawidSkene);
-        s.score(&d, &truth, 1.0, 1.5, 3.0);
-        s.score(&d, &truth, 1.0, 1.5, 3.0);
+        s.score(&d, &truth, &rule(1.0, 1.5, 3.0, 0));
+        s.score(&d, &truth, &rule(1.0, 1.5, 3.0, 0));
         // 4.5 against 0: past it.
         assert_eq!(s.serving(), Predictor::Model);
         let sc = s.scores(false);
@@ -237,10 +264,10 @@ mod tests {
             Vec::new(),
         ];
         // The second label is unknown: only the first counts.
-        s.score(&d, &[0, 2], 0.5, 1.0, 0.0);
+        s.score(&d, &[0, 2], &rule(0.5, 1.0, 0.0, 0));
         assert_eq!(s.scores(false)[0].loss, 1.0);
         assert_eq!(s.serving(), Predictor::Model);
-        s.score(&d, &[0, 2], 0.5, 1.0, 0.0);
+        s.score(&d, &[0, 2], &rule(0.5, 1.0, 0.0, 0));
         assert_eq!(s.scores(false)[0].loss, 1.5);
     }
 
@@ -260,9 +287,7 @@ mod tests {
                     wrong.clone(),
                 ],
                 &truth,
-                1.0,
-                1.0,
-                3.0,
+                &rule(1.0, 1.0, 3.0, 0),
             );
         }
         assert_eq!(s.serving(), Predictor::Paper);
@@ -281,9 +306,7 @@ mod tests {
                     Vec::new(),
                 ],
                 &truth,
-                1.0,
-                1.0,
-                3.0,
+                &rule(1.0, 1.0, 3.0, 0),
             );
         }
         assert_eq!(s.serving(), Predictor::Model);
@@ -292,5 +315,27 @@ mod tests {
         for p in Predictor::ALL {
             assert_eq!(serde_json::to_value(p).unwrap(), p.name());
         }
+    }
+
+    #[test]
+    fn nothing_changes_before_min_rounds_labelled_rounds() {
+        let truth = [1u8, 0, 1, 0];
+        // The model is right and Dawid-Skene wrong on every label: a loss gap of 5 a round.
+        let d = [
+            dec(&[0, 1, 0, 1]),
+            dec(&[1, 0, 1, 0]),
+            dec(&[0, 1, 0, 1]),
+            Vec::new(),
+            Vec::new(),
+        ];
+        let mut s = Switch::default();
+        for _ in 0..4 {
+            s.score(&d, &truth, &rule(1.0, 1.5, 3.0, 5));
+            assert_eq!(s.serving(), Predictor::DawidSkene);
+        }
+        // Scored all along: the fifth round switches on the whole gap.
+        assert_eq!(s.scores(false)[0].loss, 20.0);
+        s.score(&d, &truth, &rule(1.0, 1.5, 3.0, 5));
+        assert_eq!(s.serving(), Predictor::Model);
     }
 }

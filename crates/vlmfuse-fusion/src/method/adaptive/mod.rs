@@ -30,7 +30,7 @@ mod rows;
 
 pub use calibrate::Calibrator;
 pub use config::{AdaptiveConfig, Guardrail, Reputation, Serve, SoftTruth, WeightNorm};
-pub use gate::{CandidateScore, Predictor, Switch};
+pub use gate::{CandidateScore, Predictor, Switch, SwitchRule};
 pub use pool::{Pool, Scan};
 
 use super::Ctx;
@@ -1457,9 +1457,12 @@ impl Adaptive {
                 self.switch.score(
                     &[ds, model, vote, paper, mean],
                     &lr.truth,
-                    a.switch_discount,
-                    a.switch_fn_cost,
-                    a.switch_margin,
+                    &SwitchRule {
+                        discount: a.switch_discount,
+                        fn_cost: a.switch_fn_cost,
+                        margin: a.switch_margin,
+                        min_rounds: a.switch_min_rounds,
+                    },
                 );
             }
         }
