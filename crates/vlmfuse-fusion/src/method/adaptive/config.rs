@@ -219,6 +219,11 @@ pub struct AdaptiveConfig {
     /// then Dawid–Skene, which needs no label, serves: a loss gap over a handful of rounds is
     /// mostly noise (the model, too, keeps its initial threshold until `threshold_min_rounds`).
     pub switch_min_rounds: u64,
+    /// `switch`: the model/paper mean's loss is compared at `1 - switch_mean_edge` times its
+    /// value. Its two halves are learners whose scores lag behind them (each labelled round
+    /// is scored before it is learnt) and whose errors are partly independent, so at equal past
+    /// loss the mean tends to be the better choice from here on (docs/METHOD.md §3).
+    pub switch_mean_edge: f64,
     /// `switch`: the `paper` candidate (PAPER-METHOD.md's rule over the pool's labelled
     /// entries) searches only the latest `paper_window` labelled rounds for its neighbours, so
     /// that its cost per round is bounded at any scale (and it forgets what drift made stale).
@@ -287,6 +292,7 @@ impl Default for AdaptiveConfig {
             switch_fn_cost: 1.5,
             switch_margin: 3.0,
             switch_min_rounds: 20,
+            switch_mean_edge: 0.03,
             paper_window: 2_000,
             ds_label_strength: 30.0,
             threshold_initial: 0.505,
@@ -393,6 +399,12 @@ impl AdaptiveConfig {
         }
         nonneg(self.switch_fn_cost, "switch_fn_cost")?;
         nonneg(self.switch_margin, "switch_margin")?;
+        if !(0.0..1.0).contains(&self.switch_mean_edge) {
+            return Err(format!(
+                "switch_mean_edge must lie in [0, 1), got {}",
+                self.switch_mean_edge
+            ));
+        }
         nonneg(self.ds_label_strength, "ds_label_strength")?;
         if self.serve != Serve::Model {
             // sigmoid(ln(tpr / fpr)): the vote's posterior with a one-vote majority.

@@ -13,7 +13,9 @@
 //! candidate's by at most the margin between switches, and a tie never flips the choice. With no
 //! label every loss is zero and the first candidate, Dawid–Skene, serves; it keeps serving until
 //! `switch_min_rounds` labelled rounds have been scored (a loss gap over a handful of rounds is
-//! mostly noise).
+//! mostly noise). The model/paper mean's loss is compared at `1 - switch_mean_edge` times its
+//! value: averaging two partly independent learners helps more than their scores while they
+//! were still learning show.
 
 use serde::{Deserialize, Serialize};
 
@@ -113,6 +115,8 @@ pub struct SwitchRule {
     pub margin: f64,
     /// Labelled rounds scored before the serving candidate may change.
     pub min_rounds: u64,
+    /// The model/paper mean's loss is compared at `1 - mean_edge` times its value.
+    pub mean_edge: f64,
 }
 
 /// The switch's state.
@@ -153,6 +157,7 @@ impl Switch {
             fn_cost,
             margin,
             min_rounds,
+            mean_edge,
         } = *rule;
         for (c, dec) in decisions.iter().enumerate() {
             if dec.is_empty() {
@@ -178,14 +183,22 @@ impl Switch {
         if self.rounds < min_rounds {
             return;
         }
-        // The leader: the lowest loss, ties to the earlier candidate.
+        // What the switch compares: the loss, the mean's shrunk by its edge.
+        let eff = |c: usize| {
+            if c == Predictor::Blend.index() {
+                self.loss[c] * (1.0 - mean_edge)
+            } else {
+                self.loss[c]
+            }
+        };
+        // The leader: the lowest, ties to the earlier candidate.
         let mut best = 0;
         for (c, dec) in decisions.iter().enumerate().skip(1) {
-            if !dec.is_empty() && self.loss[c] < self.loss[best] {
+            if !dec.is_empty() && eff(c) < eff(best) {
                 best = c;
             }
         }
-        if self.loss[best] < self.loss[self.serving.index()] - margin {
+        if eff(best) < eff(self.serving.index()) - margin {
             self.serving = Predictor::ALL[best];
         }
     }
@@ -218,6 +231,7 @@ mod tests {
             fn_cost,
             margin,
             min_rounds,
+            mean_edge: 0.0,
         }
     }
 
@@ -336,6 +350,53 @@ mod tests {
         // Scored all along: the fifth round switches on the whole gap.
         assert_eq!(s.scores(false)[0].loss, 20.0);
         s.score(&d, &truth, &rule(1.0, 1.5, 3.0, 5));
+        assert_eq!(s.serving(), Predictor::Model);
+    }
+
+    #[test]
+    fn the_mean_is_compared_at_its_edge() {
+        let truth = [1u8, 0, 1, 0];
+        // The model misses one label a round (loss 1.5), the mean a false alarm (loss 1) every
+        // other round; the others are always wrong.
+        let wrong = dec(&[0, 1, 0, 1]);
+        let model = dec(&[1, 0, 0, 0]);
+        let mut s = Switch::default();
+        let mut r = rule(1.0, 1.5, 0.0, 0);
+        r.mean_edge = 0.5;
+        for i in 0..4 {
+            let mean = if i % 2 == 0 {
+                dec(&[1, 1, 1, 0])
+            } else {
+                dec(&[1, 0, 1, 0])
+            };
+            let d = [
+                wrong.clone(),
+                model.clone(),
+                wrong.clone(),
+                wrong.clone(),
+                mean,
+            ];
+            s.score(&d, &truth, &r);
+        }
+        // Losses: model 6, mean 2 (compared at 1): the mean serves.
+        assert_eq!(s.serving(), Predictor::Blend);
+        assert_eq!(s.scores(true)[4].loss, 2.0);
+        // A mean that is worse than the model by less than its edge still wins; by more, not.
+        let mut s = Switch::default();
+        let mean = dec(&[1, 1, 0, 0]); // loss 2.5 a round against the model's 1.5
+        let d = [
+            wrong.clone(),
+            model.clone(),
+            wrong.clone(),
+            wrong.clone(),
+            mean,
+        ];
+        r.mean_edge = 0.5; // 2.5 * 0.5 = 1.25 < 1.5
+        s.score(&d, &truth, &r);
+        assert_eq!(s.serving(), Predictor::Blend);
+        let mut s = Switch::default();
+        r.mean_edge = 0.3; // 2.5 * 0.7 = 1.75 > 1.5
+        s.score(&d, &truth, &r);
         assert_eq!(s.serving(), Predictor::Model);
     }
 }

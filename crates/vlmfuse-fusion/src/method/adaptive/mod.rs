@@ -1462,6 +1462,7 @@ impl Adaptive {
                         fn_cost: a.switch_fn_cost,
                         margin: a.switch_margin,
                         min_rounds: a.switch_min_rounds,
+                        mean_edge: a.switch_mean_edge,
                     },
                 );
             }
