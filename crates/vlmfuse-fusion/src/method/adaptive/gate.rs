@@ -356,41 +356,37 @@ mod tests {
     #[test]
     fn the_mean_is_compared_at_its_edge() {
         let truth = [1u8, 0, 1, 0];
-        // The model misses one label a round (loss 1.5), the mean a false alarm (loss 1) every
-        // other round; the others are always wrong.
+        // The model misses one label a round (loss 1.5); the others but the mean are always
+        // wrong.
         let wrong = dec(&[0, 1, 0, 1]);
         let model = dec(&[1, 0, 0, 0]);
-        let mut s = Switch::default();
-        let mut r = rule(1.0, 1.5, 0.0, 0);
-        r.mean_edge = 0.5;
-        for i in 0..4 {
-            let mean = if i % 2 == 0 {
-                dec(&[1, 1, 1, 0])
-            } else {
-                dec(&[1, 0, 1, 0])
-            };
-            let d = [
+        let with_mean = |mean: Vec<bool>| {
+            [
                 wrong.clone(),
                 model.clone(),
                 wrong.clone(),
                 wrong.clone(),
                 mean,
-            ];
-            s.score(&d, &truth, &r);
+            ]
+        };
+        let mut s = Switch::default();
+        let mut r = rule(1.0, 1.5, 0.0, 0);
+        r.mean_edge = 0.5;
+        // The mean: a false alarm (loss 1) every other round.
+        for i in 0..4 {
+            let mean = if i % 2 == 0 {
+                &[1, 1, 1, 0]
+            } else {
+                &[1, 0, 1, 0]
+            };
+            s.score(&with_mean(dec(mean)), &truth, &r);
         }
         // Losses: model 6, mean 2 (compared at 1): the mean serves.
         assert_eq!(s.serving(), Predictor::Blend);
         assert_eq!(s.scores(true)[4].loss, 2.0);
         // A mean that is worse than the model by less than its edge still wins; by more, not.
+        let d = with_mean(dec(&[1, 1, 0, 0])); // loss 2.5 a round against the model's 1.5
         let mut s = Switch::default();
-        let mean = dec(&[1, 1, 0, 0]); // loss 2.5 a round against the model's 1.5
-        let d = [
-            wrong.clone(),
-            model.clone(),
-            wrong.clone(),
-            wrong.clone(),
-            mean,
-        ];
         r.mean_edge = 0.5; // 2.5 * 0.5 = 1.25 < 1.5
         s.score(&d, &truth, &r);
         assert_eq!(s.serving(), Predictor::Blend);
