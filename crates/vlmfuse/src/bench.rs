@@ -454,6 +454,7 @@ fn eval_bench(args: &BenchArgs) -> anyhow::Result<()> {
         labelled: None,
         seed: 0,
         pick: eval::Pick::Random,
+        review_pool: 1.0,
         curve: vec![],
         quiet: true,
     };

@@ -120,6 +120,13 @@ pub struct EvalArgs {
     /// `--plots` draws random picks dashed beside the queue's.
     #[arg(long, value_enum, default_value_t = Pick::Random)]
     pub pick: Pick,
+    /// With `--pick review` or `compare`: the queue ranks only a `--seed`-chosen share of the
+    /// history rounds (in (0, 1]; 1 = all, the default). The queue is deterministic, so one
+    /// queue is one sample of N rounds; seeded pools give it a spread of outcomes to average over
+    /// seeds, as random picks are (`scripts/queue-curve --pools`).
+    #[arg(long, default_value_t = 1.0, value_parser = parse_pool, value_name = "SHARE",
+          allow_negative_numbers = true)]
+    pub review_pool: f64,
     /// Learning curve: for each N (e.g. `0,10,50,200,all`) and each method, one row of the
     /// table, plus majority vote, unsupervised Dawid–Skene and each reporter alone; with
     /// `--plots`, the curve and a reliability diagram per method.
@@ -157,6 +164,7 @@ fn choose_labels(
     keep: Option<usize>,
     pick: Pick,
     seed: u64,
+    pool: f64,
     reporters: usize,
     l: usize,
 ) -> (Vec<ParsedRound>, usize) {
@@ -164,8 +172,18 @@ fn choose_labels(
         Pick::Random | Pick::Compare => hide_labels(rounds, n_hist, keep, seed),
         Pick::Review => {
             let q = dawid_skene(rounds, reporters, l, DS_ITERS, DS_SMOOTHING);
-            vlmfuse_fusion::curve::pick_review(rounds, n_hist, keep, &q)
+            let pool = vlmfuse_fusion::curve::ReviewPool { share: pool, seed };
+            vlmfuse_fusion::curve::pick_review(rounds, n_hist, keep, &q, pool)
         }
+    }
+}
+
+fn parse_pool(s: &str) -> Result<f64, String> {
+    let v: f64 = s.parse().map_err(|e| format!("{e}"))?;
+    if v > 0.0 && v <= 1.0 {
+        Ok(v)
+    } else {
+        Err(format!("the review pool is a share in (0, 1], got {v}"))
     }
 }
 
@@ -266,6 +284,8 @@ pub struct EvalRun {
     pub available: usize,
     pub seed: u64,
     pub pick: Pick,
+    /// `--review-pool`: the share of history rounds the queue ranked.
+    pub review_pool: f64,
 }
 
 fn ablation_list(names: &[String]) -> anyhow::Result<Vec<String>> {
@@ -309,6 +329,7 @@ pub fn evaluate(
         args.labelled.and_then(|k| k.limit()),
         args.pick,
         args.seed,
+        args.review_pool,
         engine.reporters().len(),
         ontology.len(),
     );
@@ -381,6 +402,7 @@ pub fn evaluate(
             .count(),
         seed: args.seed,
         pick: args.pick,
+        review_pool: args.review_pool,
     })
 }
 
@@ -447,7 +469,11 @@ pub fn format_table(run: &EvalRun) -> String {
         run.n_hist,
         run.labelled,
         if run.labelled < run.available {
-            format!(" of {}, {}", run.available, chosen_by(run.pick, run.seed))
+            format!(
+                " of {}, {}",
+                run.available,
+                chosen_by(run.pick, run.seed, run.review_pool)
+            )
         } else {
             String::new()
         },
@@ -519,6 +545,7 @@ fn report_json(run: &EvalRun, args: &EvalArgs) -> Value {
         "history": run.n_hist,
         "labelled_history": run.labelled,
         "seed": run.seed,
+        "review_pool": run.review_pool,
         "split": args.split,
         "frozen": args.frozen,
         "reporters": run.engine.reporters(),
@@ -599,6 +626,8 @@ pub struct CurveRun {
     pub n_hist: usize,
     pub available: usize,
     pub seed: u64,
+    /// `--review-pool`: the share of history rounds the queue ranked.
+    pub review_pool: f64,
     pub frozen: bool,
     /// Whether each N was run with both picks (`--pick compare`).
     pub compare: bool,
@@ -662,6 +691,7 @@ pub fn evaluate_curve(
                 keep.limit(),
                 pick,
                 args.seed,
+                args.review_pool,
                 engine.reporters().len(),
                 l,
             );
@@ -705,17 +735,23 @@ pub fn evaluate_curve(
         n_hist,
         available,
         seed: args.seed,
+        review_pool: args.review_pool,
         frozen: args.frozen,
         compare: picks.len() > 1,
     })
 }
 
 /// How the labelled history rounds were chosen, in words.
-fn chosen_by(pick: Pick, seed: u64) -> String {
+fn chosen_by(pick: Pick, seed: u64, pool: f64) -> String {
+    let queue = if pool < 1.0 {
+        format!("the review queue over a share {pool} of the history chosen by seed {seed}")
+    } else {
+        "the review queue".into()
+    };
     match pick {
         Pick::Random => format!("chosen by seed {seed}"),
-        Pick::Review => "chosen by the review queue".into(),
-        Pick::Compare => format!("chosen by the review queue and, for comparison, by seed {seed}"),
+        Pick::Review => format!("chosen by {queue}"),
+        Pick::Compare => format!("chosen by {queue} and, for comparison, by seed {seed}"),
     }
 }
 
@@ -733,7 +769,8 @@ pub fn format_curve(c: &CurveRun) -> String {
             } else {
                 c.points.first().map_or(Pick::Random, |p| p.pick)
             },
-            c.seed
+            c.seed,
+            c.review_pool
         ),
         if c.frozen {
             "; frozen after the history"
@@ -786,6 +823,7 @@ fn curve_json(c: &CurveRun, args: &EvalArgs) -> Value {
         "history": c.n_hist,
         "history_with_truth": c.available,
         "seed": c.seed,
+        "review_pool": c.review_pool,
         "split": args.split,
         "frozen": c.frozen,
         "reporters": c.reporters,

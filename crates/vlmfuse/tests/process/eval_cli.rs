@@ -343,3 +343,82 @@ fn a_curve_compares_the_review_queue_with_random_picks() {
     assert!(!res.status.success());
     assert!(String::from_utf8_lossy(&res.stderr).contains("use it with --curve"));
 }
+
+#[test]
+fn a_review_pool_gives_the_queue_one_sample_per_seed() {
+    let run = |seed: &str, pool: &str| {
+        let dir = tempfile::tempdir().unwrap();
+        let report = dir.path().join("curve.json");
+        let res = bin()
+            .arg("eval")
+            .arg(data())
+            .args(["--frozen", "--curve", "20", "--pick", "review", "--quiet"])
+            .args([
+                "--seed",
+                seed,
+                "--review-pool",
+                pool,
+                "--method",
+                "adaptive",
+            ])
+            .arg("--report")
+            .arg(&report)
+            .output()
+            .unwrap();
+        assert!(
+            res.status.success(),
+            "{}",
+            String::from_utf8_lossy(&res.stderr)
+        );
+        let table = String::from_utf8(res.stdout).unwrap();
+        let v: Value = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+        assert_eq!(v["review_pool"].as_f64(), Some(pool.parse().unwrap()));
+        let s = v["points"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|p| p["method"] == "adaptive")
+            .unwrap()["scores"]
+            .clone();
+        (
+            table,
+            (
+                s["hamming"].as_f64().unwrap(),
+                s["micro_f1"].as_f64().unwrap(),
+            ),
+        )
+    };
+    let (table, a) = run("1", "0.5");
+    assert!(
+        table.contains("the review queue over a share 0.5 of the history chosen by seed 1"),
+        "{table}"
+    );
+    // Another seed, another pool, other picks; the same seed, the same picks. The whole pool
+    // does not depend on the seed.
+    assert_eq!(run("1", "0.5").1, a);
+    assert_ne!(run("2", "0.5").1, a);
+    assert_eq!(run("1", "1").1, run("2", "1").1);
+
+    for bad in ["0", "1.5", "-0.2", "x"] {
+        let res = bin()
+            .arg("eval")
+            .arg(data())
+            .args([
+                "--curve",
+                "20",
+                "--pick",
+                "review",
+                "--review-pool",
+                bad,
+                "--quiet",
+            ])
+            .output()
+            .unwrap();
+        assert_eq!(res.status.code(), Some(2), "{bad}");
+        assert!(
+            String::from_utf8_lossy(&res.stderr).contains("--review-pool"),
+            "{bad}: {}",
+            String::from_utf8_lossy(&res.stderr)
+        );
+    }
+}
