@@ -12,7 +12,7 @@ use std::fs::File;
 use std::io::{BufRead, BufReader, BufWriter, Write};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-use vlmfuse_fusion::curve::{dawid_skene, hide_labels, score_posteriors};
+use vlmfuse_fusion::curve::{dawid_skene, hide_labels, score_posteriors, ReviewPool};
 use vlmfuse_fusion::metrics::Scores;
 use vlmfuse_fusion::replay::{
     history_len, prepare, replay, score_baselines, score_method, ParsedRound, ReplayOptions,
@@ -157,22 +157,20 @@ impl Pick {
     }
 }
 
-/// The rounds with all but `keep` history truths hidden, chosen by `pick`.
+/// The rounds with all but `keep` history truths hidden, chosen by `pick`; `pool.seed` (the
+/// `--seed`) draws random picks as well as the review queue's pool.
 fn choose_labels(
     rounds: &[ParsedRound],
     n_hist: usize,
     keep: Option<usize>,
     pick: Pick,
-    seed: u64,
-    pool: f64,
-    reporters: usize,
-    l: usize,
+    pool: ReviewPool,
+    (reporters, l): (usize, usize),
 ) -> (Vec<ParsedRound>, usize) {
     match pick {
-        Pick::Random | Pick::Compare => hide_labels(rounds, n_hist, keep, seed),
+        Pick::Random | Pick::Compare => hide_labels(rounds, n_hist, keep, pool.seed),
         Pick::Review => {
             let q = dawid_skene(rounds, reporters, l, DS_ITERS, DS_SMOOTHING);
-            let pool = vlmfuse_fusion::curve::ReviewPool { share: pool, seed };
             vlmfuse_fusion::curve::pick_review(rounds, n_hist, keep, &q, pool)
         }
     }
@@ -328,10 +326,11 @@ pub fn evaluate(
         n_hist,
         args.labelled.and_then(|k| k.limit()),
         args.pick,
-        args.seed,
-        args.review_pool,
-        engine.reporters().len(),
-        ontology.len(),
+        ReviewPool {
+            share: args.review_pool,
+            seed: args.seed,
+        },
+        (engine.reporters().len(), ontology.len()),
     );
     let opts = ReplayOptions {
         split: args.split,
@@ -690,10 +689,11 @@ pub fn evaluate_curve(
                 n_hist,
                 keep.limit(),
                 pick,
-                args.seed,
-                args.review_pool,
-                engine.reporters().len(),
-                l,
+                ReviewPool {
+                    share: args.review_pool,
+                    seed: args.seed,
+                },
+                (engine.reporters().len(), l),
             );
             for method in CURVE_METHODS {
                 bar.set_message(if picks.len() > 1 {
