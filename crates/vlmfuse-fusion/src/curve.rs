@@ -23,6 +23,14 @@ fn to_hide(
     }
 }
 
+/// `rounds` in the order `seed` shuffles them: its first k are the seed's uniform draw of k, the
+/// same draw for random picks and for the review queue's pool.
+fn seeded_order(rounds: &[usize], seed: u64) -> Vec<usize> {
+    let mut order = rounds.to_vec();
+    order.shuffle(&mut ChaCha8Rng::seed_from_u64(seed));
+    order
+}
+
 /// Keeps the truth of `keep` history rounds (all of them for `None`), chosen uniformly among the
 /// history rounds that have one by `seed`, and hides the others'. Test rounds (after the first
 /// `n_hist`) keep their truth: they are scored on it. Returns the rounds and how many history
@@ -38,9 +46,7 @@ pub fn hide_labels(
         Ok(v) => v,
         Err(all) => return (out, all),
     };
-    let mut order = labelled.clone();
-    order.shuffle(&mut ChaCha8Rng::seed_from_u64(seed));
-    for &t in &order[keep..] {
+    for &t in &seeded_order(&labelled, seed)[keep..] {
         out[t].truth = None;
     }
     (out, keep)
@@ -88,14 +94,16 @@ pub fn pick_review(
         Err(all) => return (out, all),
     };
     let l = q.first().map_or(0, Vec::len);
-    let mut pooled = labelled.clone();
-    if pool.share < 1.0 {
+    let pooled = if pool.share < 1.0 {
         let size = ((pool.share.max(0.0) * labelled.len() as f64).ceil() as usize).max(1);
-        pooled.shuffle(&mut ChaCha8Rng::seed_from_u64(pool.seed));
+        let mut pooled = seeded_order(&labelled, pool.seed);
         pooled.truncate(size);
         // Time order, as the queue sees the service's window: ties go to the older round.
         pooled.sort_unstable();
-    }
+        pooled
+    } else {
+        labelled.clone()
+    };
     let cands: Vec<crate::review::Candidate> = pooled
         .iter()
         .map(|&t| crate::review::Candidate {

@@ -176,6 +176,16 @@ fn choose_labels(
     }
 }
 
+impl EvalArgs {
+    /// `--review-pool` with the `--seed` that draws it.
+    fn pool(&self) -> ReviewPool {
+        ReviewPool {
+            share: self.review_pool,
+            seed: self.seed,
+        }
+    }
+}
+
 fn parse_pool(s: &str) -> Result<f64, String> {
     let v: f64 = s.parse().map_err(|e| format!("{e}"))?;
     if v > 0.0 && v <= 1.0 {
@@ -326,10 +336,7 @@ pub fn evaluate(
         n_hist,
         args.labelled.and_then(|k| k.limit()),
         args.pick,
-        ReviewPool {
-            share: args.review_pool,
-            seed: args.seed,
-        },
+        args.pool(),
         (engine.reporters().len(), ontology.len()),
     );
     let opts = ReplayOptions {
@@ -689,10 +696,7 @@ pub fn evaluate_curve(
                 n_hist,
                 keep.limit(),
                 pick,
-                ReviewPool {
-                    share: args.review_pool,
-                    seed: args.seed,
-                },
+                args.pool(),
                 (engine.reporters().len(), l),
             );
             for method in CURVE_METHODS {

@@ -13,6 +13,16 @@ fn data() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/rounds.jsonl")
 }
 
+/// The stdout of a run that must succeed; its stderr otherwise.
+fn stdout_of_success(res: std::process::Output) -> String {
+    assert!(
+        res.status.success(),
+        "{}",
+        String::from_utf8_lossy(&res.stderr)
+    );
+    String::from_utf8(res.stdout).unwrap()
+}
+
 fn row<'a>(report: &'a Value, name: &str) -> &'a Value {
     report["rows"]
         .as_array()
@@ -40,12 +50,7 @@ fn eval_emits_spec_rounds_report_and_plots() {
         .arg(&plots)
         .output()
         .unwrap();
-    assert!(
-        res.status.success(),
-        "{}",
-        String::from_utf8_lossy(&res.stderr)
-    );
-    let table = String::from_utf8(res.stdout).unwrap();
+    let table = stdout_of_success(res);
     for name in [
         "fusion (full method)",
         "ablation: frozen-reputation",
@@ -293,12 +298,7 @@ fn a_curve_compares_the_review_queue_with_random_picks() {
         .arg(&plots)
         .output()
         .unwrap();
-    assert!(
-        res.status.success(),
-        "{}",
-        String::from_utf8_lossy(&res.stderr)
-    );
-    let table = String::from_utf8(res.stdout).unwrap();
+    let table = stdout_of_success(res);
     assert!(
         table.contains("chosen by the review queue and, for comparison, by seed 0")
             && table.contains("20        adaptive (review)")
@@ -365,12 +365,7 @@ fn a_review_pool_gives_the_queue_one_sample_per_seed() {
             .arg(&report)
             .output()
             .unwrap();
-        assert!(
-            res.status.success(),
-            "{}",
-            String::from_utf8_lossy(&res.stderr)
-        );
-        let table = String::from_utf8(res.stdout).unwrap();
+        let table = stdout_of_success(res);
         let v: Value = serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
         assert_eq!(v["review_pool"].as_f64(), Some(pool.parse().unwrap()));
         let s = v["points"]
