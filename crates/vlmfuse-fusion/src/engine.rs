@@ -153,7 +153,7 @@ pub struct ReporterStats {
 /// the methods' state). A stored copy written under another layout is not read back: the store
 /// then replays the events instead. Bump it with any change to a field of the engine or of the
 /// state it owns; the `layout_is_pinned` test fails until it is bumped and its digest updated.
-pub const ENGINE_LAYOUT: u32 = 8;
+pub const ENGINE_LAYOUT: u32 = 9;
 
 /// The engine: shared state plus the configured method's own. Serialisable so that the store
 /// can keep a snapshot and replay only the events after it; a snapshot read back is the very
@@ -527,14 +527,7 @@ impl Engine {
         seq: u64,
     ) -> FeedbackOutcome {
         let cfg = &self.cfg;
-        let credit = if cfg.ablations.per_model_score {
-            signals.per_model_score(truth)
-        } else if signals.members() <= cfg.shapley_exact_max {
-            signals.shapley_exact(truth)
-        } else {
-            let seed = cfg.shapley_seed ^ seq.wrapping_mul(0x9e37_79b9_7f4a_7c15);
-            signals.shapley_sampled(truth, cfg.shapley_samples, seed)
-        };
+        let credit = signals.credit(cfg, truth, seq);
         let n = self.reporters.len();
         let mut phi = vec![0.0; n];
         for (a, &i) in signals.coalition.iter().enumerate() {

@@ -257,6 +257,20 @@ impl Signals {
             .collect()
     }
 
+    /// The round's credit as the configuration asks for it (PAPER-METHOD.md §4): exact Shapley
+    /// values up to `shapley_exact_max` members, sampled ones (seeded by the round's `seq`)
+    /// beyond, per-model scores under that ablation.
+    pub fn credit(&self, cfg: &crate::config::FusionConfig, y: &[u8], seq: u64) -> Credit {
+        if cfg.ablations.per_model_score {
+            self.per_model_score(y)
+        } else if self.members() <= cfg.shapley_exact_max {
+            self.shapley_exact(y)
+        } else {
+            let seed = cfg.shapley_seed ^ seq.wrapping_mul(0x9e37_79b9_7f4a_7c15);
+            self.shapley_sampled(y, cfg.shapley_samples, seed)
+        }
+    }
+
     /// Exact Shapley values by enumerating all `2^p` coalitions.
     pub fn shapley_exact(&self, y: &[u8]) -> Credit {
         let p = self.members();

@@ -388,7 +388,7 @@ fn layout_is_pinned() {
         h ^= b as u64;
         h = h.wrapping_mul(0x100000001b3);
     }
-    let pinned: (u32, u64) = (8, 0x6a74adba2594afb0);
+    let pinned: (u32, u64) = (9, 0x90733460734f3b46);
     assert_eq!(
         (vlmfuse_fusion::ENGINE_LAYOUT, h),
         pinned,
@@ -646,7 +646,10 @@ fn the_switch_serves_the_model_once_labels_show_context_decides() {
     let scores = e.candidate_scores().unwrap();
     assert_eq!(scores.len(), 5, "{scores:?}");
     let loss = |p: Predictor| scores.iter().find(|s| s.predictor == p).unwrap().loss;
-    for p in context_aware {
+    // The model and whoever serves lead the context-blind candidates. (The paper rule alone,
+    // under the paper method's own reputations, trails them on this stream: loss 385 against
+    // Dawid-Skene's 261. The switch need not serve it.)
+    for p in [Predictor::Model, now] {
         assert!(
             loss(p) < loss(Predictor::DawidSkene) && loss(p) < loss(Predictor::MajorityVote),
             "{p:?}: {scores:?}"
@@ -663,9 +666,11 @@ fn the_switch_serves_the_model_once_labels_show_context_decides() {
     assert!(switches <= 4, "{switches} switches: {served:?}");
 }
 
-/// The switch's `paper` candidate is the paper method's rule: with every round labelled, the
-/// same reputations (frozen), contexts kept in f64 and no calibration, its posteriors and thresholds are the
-/// `paper` method's, round by round; with a window of 40 labelled rounds it differs (it forgets).
+/// The switch's `paper` candidate is the paper method's rule: with every round labelled,
+/// contexts kept in f64 and no calibration, its posteriors and thresholds are the `paper`
+/// method's, round by round, though the adaptive engine's own reputations differ from the paper
+/// method's (the candidate keeps the paper method's as its own); with a window of 40 labelled
+/// rounds it differs (it forgets).
 #[test]
 fn the_paper_candidate_is_the_paper_method_on_the_labelled_pool() {
     let l = Ontology::paper().len();
@@ -676,18 +681,17 @@ fn the_paper_candidate_is_the_paper_method_on_the_labelled_pool() {
             (c, p, r, Some(y))
         })
         .collect();
-    let mut frozen = FusionConfig::default();
-    frozen.ablations.frozen_reputation = true;
+    let base = FusionConfig::default();
     let mut cand_cfg = FusionConfig {
         method: Method::Adaptive,
-        ..frozen.clone()
+        ..base.clone()
     };
     cand_cfg.adaptive.compact_contexts = false;
     // The paper method's raw posteriors (the candidate calibrates them as the model's are).
     cand_cfg.adaptive.calibration = false;
     let paper_cfg = FusionConfig {
         method: Method::Paper,
-        ..frozen
+        ..base
     };
     let mut windowed = cand_cfg.clone();
     windowed.adaptive.paper_window = 40;
@@ -739,6 +743,14 @@ fn the_paper_candidate_is_the_paper_method_on_the_labelled_pool() {
         }
     }
     assert!(worst <= 1e-12, "largest difference {worst:e}");
+    // The engines' reputations parted: the candidate did not just borrow the adaptive ones.
+    let gap = a
+        .reputations()
+        .iter()
+        .zip(p.reputations())
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max);
+    assert!(gap > 0.01, "adaptive and paper reputations agree to {gap}");
     assert!(
         windowed_differs,
         "a window of 40 labelled rounds changed nothing"

@@ -48,6 +48,12 @@ pub struct PaperCandidate {
     calib: Calibrator,
     /// Sequence numbers of the latest labelled (or partly labelled) rounds, oldest first.
     recent: VecDeque<u64>,
+    /// The candidate's own reputations, kept as the paper method keeps its own: uniform at the
+    /// start, then PAPER-METHOD.md §5's multiplicative update on the Shapley credit of the
+    /// candidate's signals for each labelled round. The engine's reputations (the adaptive
+    /// ones, §4) are not the paper method's: run under them the rule trails the paper method
+    /// itself on drifting data, and the switch should be able to serve the paper method.
+    w: Vec<f64>,
     /// Bumped by every [`PaperCandidate::learn`]: what [`Memo`] entries are valid for. The
     /// cache's key, not state: a copy read back starts at 0 with an empty cache.
     #[serde(skip)]
@@ -111,6 +117,8 @@ pub struct Answer {
     raw_thresholds: Vec<f64>,
     /// The raw fused logit per label, which the calibration is fitted on.
     logit: Vec<f64>,
+    /// The rule's inputs, which the candidate's own reputations are credited on.
+    signals: crate::signals::Signals,
 }
 
 impl Answer {
@@ -156,6 +164,7 @@ impl PaperCandidate {
                 .refit_every(CALIB_EVERY)
             },
             recent: VecDeque::new(),
+            w: vec![1.0 / n.max(1) as f64; n],
             version: 0,
             memo: Memo::default(),
             passes: Passes::default(),
@@ -168,6 +177,16 @@ impl PaperCandidate {
     /// `first`, when given, is the pool scan's f32 first pass for this round (fresh: covering
     /// the whole pool), which the neighbour search reuses.
     pub fn infer(&self, cx: &Ctx, pool: &Pool, round: &Round, first: Option<&FirstPass>) -> Answer {
+        let uniform;
+        let cx = &Ctx {
+            w: if self.w.len() == cx.n {
+                &self.w
+            } else {
+                uniform = vec![1.0 / cx.n.max(1) as f64; cx.n];
+                &uniform
+            },
+            ..*cx
+        };
         let kept;
         let first = match first {
             Some(f) => Some(f),
@@ -286,6 +305,7 @@ impl PaperCandidate {
             raw_q,
             raw_thresholds,
             logit,
+            signals,
         }
     }
 
@@ -303,6 +323,17 @@ impl PaperCandidate {
     ) {
         let r = &lr.round;
         self.version += 1;
+        if !cx.cfg.ablations.frozen_reputation {
+            let credit = a.signals.credit(cx.cfg, &lr.truth, lr.seq);
+            let mut phi = vec![0.0; cx.n];
+            for (m, &i) in a.signals.coalition.iter().enumerate() {
+                phi[i] = credit.phi[m];
+            }
+            if self.w.len() != cx.n {
+                self.w = vec![1.0 / cx.n.max(1) as f64; cx.n];
+            }
+            self.w = crate::reputation::multiplicative(&self.w, &phi, cx.cfg.eta);
+        }
         self.corr.push(&r.present, &r.reports, &lr.truth);
         self.threshold.push(&a.raw_q, &lr.truth);
         if cx.cfg.adaptive.calibration {
