@@ -1,14 +1,14 @@
 //! The switch's `paper` candidate (docs/METHOD.md §3): PAPER-METHOD.md's rule — each reporter's
 //! reliability per label from the kernel-weighted labelled neighbours of the round, Beta
-//! smoothing, the prior from the same neighbours, the guardrail's correlation window, the
-//! reputations in force, its thresholds fitted on its posteriors — run on the labelled entries of
-//! the `adaptive` pool. It decides as that rule does; the posteriors it serves are calibrated
-//! (the paper's raw posteriors are far from it: ECE about 0.2 on the benchmark suite) by a
-//! per-label Platt scaling of its raw logit, `sigmoid(a_k z + b_k)` with `a_k > 0`, fitted on its
-//! own labelled rounds, and each label's threshold goes through the same map. A monotone map of
-//! both sides keeps every decision the rule's own: calibrating the posteriors and fitting the
-//! threshold on them instead changed the decisions and lost 6 of 80 points of the suite's
-//! held-out part.
+//! smoothing, the prior from the same neighbours, the guardrail's correlation window, its own
+//! reputations (kept by the paper method's multiplicative update), its thresholds fitted on its
+//! posteriors — run on the labelled entries of the `adaptive` pool. It decides as that rule does;
+//! the posteriors it serves are calibrated (the paper's raw posteriors are far from it: ECE about
+//! 0.2 on the benchmark suite) by a per-label Platt scaling of its raw logit,
+//! `sigmoid(a_k z + b_k)` with `a_k > 0`, fitted on its own labelled rounds, and each label's
+//! threshold goes through the same map. A monotone map of both sides keeps every decision the
+//! rule's own: calibrating the posteriors and fitting the threshold on them instead changed the
+//! decisions and lost 6 of 80 points of the suite's held-out part.
 //!
 //! Why a fourth candidate: where labels are many and the reporters' reliability varies by
 //! scene, or where a reporter has drifted, the purely supervised local estimate beats the
