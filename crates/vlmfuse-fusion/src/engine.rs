@@ -529,10 +529,7 @@ impl Engine {
         let cfg = &self.cfg;
         let credit = signals.credit(cfg, truth, seq);
         let n = self.reporters.len();
-        let mut phi = vec![0.0; n];
-        for (a, &i) in signals.coalition.iter().enumerate() {
-            phi[i] = credit.phi[a];
-        }
+        let phi = credit.by_reporter(&signals.coalition, n);
         let w_sum: f64 = w_used.iter().sum();
         let payoff = (0..n)
             .map(|i| phi[i] + cfg.payoff_alpha * cfg.payoff_prize * w_used[i] / w_sum)

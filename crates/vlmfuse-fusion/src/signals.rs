@@ -57,6 +57,18 @@ pub struct Credit {
     pub method: ShapleyMethod,
 }
 
+impl Credit {
+    /// The credit per configured reporter (`n` of them): each coalition member's at its
+    /// reporter's index, 0 for the absent.
+    pub fn by_reporter(&self, coalition: &[usize], n: usize) -> Vec<f64> {
+        let mut phi = vec![0.0; n];
+        for (a, &i) in coalition.iter().enumerate() {
+            phi[i] = self.phi[a];
+        }
+        phi
+    }
+}
+
 #[inline]
 pub fn clip(p: f64, eps: f64) -> f64 {
     p.clamp(eps, 1.0 - eps)

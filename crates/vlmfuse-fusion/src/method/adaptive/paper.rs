@@ -164,7 +164,7 @@ impl PaperCandidate {
                 .refit_every(CALIB_EVERY)
             },
             recent: VecDeque::new(),
-            w: vec![1.0 / n.max(1) as f64; n],
+            w: vec![1.0 / n as f64; n],
             version: 0,
             memo: Memo::default(),
             passes: Passes::default(),
@@ -177,16 +177,7 @@ impl PaperCandidate {
     /// `first`, when given, is the pool scan's f32 first pass for this round (fresh: covering
     /// the whole pool), which the neighbour search reuses.
     pub fn infer(&self, cx: &Ctx, pool: &Pool, round: &Round, first: Option<&FirstPass>) -> Answer {
-        let uniform;
-        let cx = &Ctx {
-            w: if self.w.len() == cx.n {
-                &self.w
-            } else {
-                uniform = vec![1.0 / cx.n.max(1) as f64; cx.n];
-                &uniform
-            },
-            ..*cx
-        };
+        let cx = &Ctx { w: &self.w, ..*cx };
         let kept;
         let first = match first {
             Some(f) => Some(f),
@@ -324,14 +315,10 @@ impl PaperCandidate {
         let r = &lr.round;
         self.version += 1;
         if !cx.cfg.ablations.frozen_reputation {
-            let credit = a.signals.credit(cx.cfg, &lr.truth, lr.seq);
-            let mut phi = vec![0.0; cx.n];
-            for (m, &i) in a.signals.coalition.iter().enumerate() {
-                phi[i] = credit.phi[m];
-            }
-            if self.w.len() != cx.n {
-                self.w = vec![1.0 / cx.n.max(1) as f64; cx.n];
-            }
+            let phi = a
+                .signals
+                .credit(cx.cfg, &lr.truth, lr.seq)
+                .by_reporter(&a.signals.coalition, cx.n);
             self.w = crate::reputation::multiplicative(&self.w, &phi, cx.cfg.eta);
         }
         self.corr.push(&r.present, &r.reports, &lr.truth);
