@@ -137,7 +137,8 @@ pub struct AdaptiveConfig {
     pub refresh_max: usize,
     /// Unlabelled rounds re-estimated (E-step) per observed or labelled round, cycling through
     /// the pool: EM that runs a little with every event, so its result depends on the events
-    /// alone and never on timing (replays are exact).
+    /// alone and never on timing (replays are exact). 5: as many benchmark-suite points as 10
+    /// (docs/METHOD.md §6) for about a fifth less time per unlabelled round.
     pub em_chunk: usize,
     /// Most unlabelled rounds the pool keeps (0: all). Labelled rounds are always kept; past
     /// the cap (plus a slack of a sixteenth of it) the oldest unlabelled rounds leave, so that
@@ -263,7 +264,7 @@ impl Default for AdaptiveConfig {
             corr_shrink: 50.0,
             unlabelled_ramp: 20.0,
             refresh_max: 50,
-            em_chunk: 10,
+            em_chunk: 5,
             pool_max: 100_000,
             compact_contexts: true,
             ann_min: 20_000,
