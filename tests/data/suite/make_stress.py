@@ -23,7 +23,7 @@ contexts, 14 driving labels, 1,000 rounds); Python's `random` only, so the files
 on every machine.
 
     python3 tests/data/suite/make_stress.py
-    scripts/fusion-suite --part stress --seeds 5 --jobs 2
+    scripts/fusion-suite --part stress --seeds 5 --jobs 2   # writes them first when missing
 """
 import json
 import os
