@@ -767,3 +767,45 @@ fn the_paper_candidate_is_the_paper_method_on_the_labelled_pool() {
     assert!(e.paper_candidate(&round).is_none());
     assert_eq!(e.candidate_scores().unwrap().len(), 3);
 }
+
+/// `a` and `b` make the same errors (one draw flips both, each label wrong with probability
+/// 0.25), `c` is right 85% of the time alone: agreement makes the twins look reliable.
+fn twins_stream(seed: u64, rounds: usize, l: usize) -> Vec<Event> {
+    let mut g = Lcg(seed);
+    (0..rounds)
+        .map(|_| {
+            let ctx: Vec<f64> = (0..6).map(|_| g.f() - 0.5).collect();
+            let truth: Vec<u8> = (0..l).map(|_| (g.f() < 0.4) as u8).collect();
+            let shared: Vec<u8> = (0..l).map(|_| (g.f() < 0.25) as u8).collect();
+            let mut reports = Vec::with_capacity(3 * l);
+            for _twin in 0..2 {
+                reports.extend((0..l).map(|k| truth[k] ^ shared[k]));
+            }
+            reports.extend((0..l).map(|k| truth[k] ^ (g.f() < 0.15) as u8));
+            (ctx, vec![true; 3], reports, Some(truth))
+        })
+        .collect()
+}
+
+/// Until `switch_min_rounds` labels Dawid–Skene serves, unless the labelled rounds show two
+/// reporters erring together (`switch_dependence`): then the labelled scores decide at once.
+#[test]
+fn reporters_that_err_together_let_the_switch_leave_dawid_skene_early() {
+    let l = Ontology::paper().len();
+    let events = twins_stream(3, 19, l);
+    let (e, _) = run(&adaptive(), &events);
+    assert_ne!(
+        e.serving(),
+        Some(Predictor::DawidSkene),
+        "{:?}",
+        e.candidate_scores()
+    );
+    let mut off = adaptive();
+    off.adaptive.switch_dependence = 0.0;
+    let (e, _) = run(&off, &events);
+    assert_eq!(e.serving(), Some(Predictor::DawidSkene));
+    // Reporters with independent errors never trigger it: Dawid-Skene serves until 20 labels.
+    let events = reliability_stream(4, 19, l, |_, _| [0.75, 0.75, 0.85], true);
+    let (e, _) = run(&adaptive(), &events);
+    assert_eq!(e.serving(), Some(Predictor::DawidSkene));
+}

@@ -897,6 +897,35 @@ impl Adaptive {
         }
     }
 
+    /// The largest dependence between two reporters' errors on the labelled rounds: per pair,
+    /// the phi coefficient of their error co-occurrence per label (cells smoothed by +0.5),
+    /// averaged over labels weighted by their counts.
+    fn max_error_dependence(&self, cx: &Ctx) -> f64 {
+        let (n, l) = (cx.n, cx.l);
+        let mut best = 0.0f64;
+        for i in 0..n {
+            for j in i + 1..n {
+                let base = pair_index(n, i, j) * l;
+                let (mut sum, mut mass) = (0.0, 0.0);
+                for k in 0..l {
+                    let c = self.global.pairs[base + k];
+                    let m: f64 = c.iter().sum();
+                    if m <= 0.0 {
+                        continue;
+                    }
+                    let (n00, n10, n01, n11) = (c[0] + 0.5, c[1] + 0.5, c[2] + 0.5, c[3] + 0.5);
+                    let den = ((n11 + n10) * (n01 + n00) * (n11 + n01) * (n10 + n00)).sqrt();
+                    sum += m * (n11 * n00 - n10 * n01) / den;
+                    mass += m;
+                }
+                if mass > 0.0 {
+                    best = best.max(sum / mass);
+                }
+            }
+        }
+        best
+    }
+
     /// The guardrail's correlations for a coalition: `rho[(x p + y) L + k]` for members `x != y`.
     fn rho(&self, cx: &Ctx, coalition: &[usize]) -> Vec<f64> {
         let cfg = cx.cfg;
@@ -1454,6 +1483,11 @@ impl Adaptive {
                     }
                     None => (Vec::new(), Vec::new()),
                 };
+                // Two reporters erring together break the independence Dawid-Skene (which
+                // serves until `switch_min_rounds`) reads reliabilities from agreement under.
+                let early = a.switch_dependence > 0.0
+                    && self.switch.waiting(a.switch_min_rounds)
+                    && self.max_error_dependence(cx) > a.switch_dependence;
                 self.switch.score(
                     &[ds, model, vote, paper, mean],
                     &lr.truth,
@@ -1464,6 +1498,7 @@ impl Adaptive {
                         min_rounds: a.switch_min_rounds,
                         mean_edge: a.switch_mean_edge,
                     },
+                    early,
                 );
             }
         }
