@@ -38,13 +38,19 @@ pub fn smoothed_phi(c: [u32; 4], rho_max: f64) -> f64 {
 
 /// [`smoothed_phi`] of a table of (expected, weighted) counts.
 pub fn smoothed_phi_f64(c: [f64; 4], rho_max: f64) -> f64 {
+    smoothed_phi_signed(c).clamp(0.0, rho_max)
+}
+
+/// The phi coefficient of a 2x2 table `[00, 10, 01, 11]` with every cell smoothed by +0.5, sign
+/// kept and uncapped (in (-1, 1)).
+pub fn smoothed_phi_signed(c: [f64; 4]) -> f64 {
     let n00 = c[0] + 0.5;
     let n10 = c[1] + 0.5;
     let n01 = c[2] + 0.5;
     let n11 = c[3] + 0.5;
     let num = n11 * n00 - n10 * n01;
     let den = ((n11 + n10) * (n01 + n00) * (n11 + n01) * (n10 + n00)).sqrt();
-    (num / den).clamp(0.0, rho_max)
+    num / den
 }
 
 /// A window entry's code for a label whose truth the feedback did not give.

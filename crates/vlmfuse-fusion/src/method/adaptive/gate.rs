@@ -146,25 +146,19 @@ impl Switch {
         self.serving
     }
 
-    /// Whether the next scored round still falls before `min_rounds` (only then does `early`
-    /// matter to [`Switch::score`]).
-    pub fn waiting(&self, min_rounds: u64) -> bool {
-        self.rounds + 1 < min_rounds
-    }
-
     /// Scores one labelled round: `decisions[c][k]` is candidate `c`'s decision (in
     /// [`Predictor::ALL`] order) on label `k`, `truth[k]` 0, 1 or unknown (> 1, skipped); a
     /// candidate given no decisions (an empty list: one left out by the configuration) is
     /// neither scored nor chosen. Then, once `min_rounds` labelled rounds have been scored (or
-    /// sooner with `early`: the labelled rounds already show two reporters erring together, which
-    /// breaks the independence Dawid–Skene's agreement-based reliabilities rest on), the serving
-    /// candidate is chosen again.
+    /// sooner when `early()` says so, asked only before then: the labelled rounds already show two
+    /// reporters erring together, which breaks the independence Dawid–Skene's agreement-based
+    /// reliabilities rest on), the serving candidate is chosen again.
     pub fn score(
         &mut self,
         decisions: &[Vec<bool>; CANDIDATES],
         truth: &[u8],
         rule: &SwitchRule,
-        early: bool,
+        early: impl FnOnce() -> bool,
     ) {
         let SwitchRule {
             discount,
@@ -194,7 +188,7 @@ impl Switch {
             k.fneg = discount * k.fneg + fneg;
         }
         self.rounds += 1;
-        if self.rounds < min_rounds && !early {
+        if self.rounds < min_rounds && !early() {
             return;
         }
         // What the switch compares: the loss, the mean's shrunk by its edge.
@@ -266,11 +260,11 @@ mod tests {
             Vec::new(),
             Vec::new(),
         ];
-        s.score(&d, &truth, &rule(1.0, 1.5, 3.0, 0), false);
+        s.score(&d, &truth, &rule(1.0, 1.5, 3.0, 0), || false);
         // Loss 1.5 against 0: within the margin, no switch.
         assert_eq!(s.serving(), Predictor::DawidSkene);
-        s.score(&d, &truth, &rule(1.0, 1.5, 3.0, 0), false);
-        s.score(&d, &truth, &rule(1.0, 1.5, 3.0, 0), false);
+        s.score(&d, &truth, &rule(1.0, 1.5, 3.0, 0), || false);
+        s.score(&d, &truth, &rule(1.0, 1.5, 3.0, 0), || false);
         // 4.5 against 0: past it.
         assert_eq!(s.serving(), Predictor::Model);
         let sc = s.scores(false);
@@ -292,10 +286,10 @@ mod tests {
             Vec::new(),
         ];
         // The second label is unknown: only the first counts.
-        s.score(&d, &[0, 2], &rule(0.5, 1.0, 0.0, 0), false);
+        s.score(&d, &[0, 2], &rule(0.5, 1.0, 0.0, 0), || false);
         assert_eq!(s.scores(false)[0].loss, 1.0);
         assert_eq!(s.serving(), Predictor::Model);
-        s.score(&d, &[0, 2], &rule(0.5, 1.0, 0.0, 0), false);
+        s.score(&d, &[0, 2], &rule(0.5, 1.0, 0.0, 0), || false);
         assert_eq!(s.scores(false)[0].loss, 1.5);
     }
 
@@ -316,7 +310,7 @@ mod tests {
                 ],
                 &truth,
                 &rule(1.0, 1.0, 3.0, 0),
-                false,
+                || false,
             );
         }
         assert_eq!(s.serving(), Predictor::Paper);
@@ -336,7 +330,7 @@ mod tests {
                 ],
                 &truth,
                 &rule(1.0, 1.0, 3.0, 0),
-                false,
+                || false,
             );
         }
         assert_eq!(s.serving(), Predictor::Model);
@@ -360,16 +354,16 @@ mod tests {
         ];
         let mut s = Switch::default();
         for _ in 0..4 {
-            s.score(&d, &truth, &rule(1.0, 1.5, 3.0, 5), false);
+            s.score(&d, &truth, &rule(1.0, 1.5, 3.0, 5), || false);
             assert_eq!(s.serving(), Predictor::DawidSkene);
         }
         // With `early` (dependent reporters' errors) the margin alone decides from the start.
         let mut e = Switch::default();
-        e.score(&d, &truth, &rule(1.0, 1.5, 3.0, 5), true);
+        e.score(&d, &truth, &rule(1.0, 1.5, 3.0, 5), || true);
         assert_eq!(e.serving(), Predictor::Model);
         // Scored all along: the fifth round switches on the whole gap.
         assert_eq!(s.scores(false)[0].loss, 20.0);
-        s.score(&d, &truth, &rule(1.0, 1.5, 3.0, 5), false);
+        s.score(&d, &truth, &rule(1.0, 1.5, 3.0, 5), || false);
         assert_eq!(s.serving(), Predictor::Model);
     }
 
@@ -399,7 +393,7 @@ mod tests {
             } else {
                 &[1, 0, 1, 0]
             };
-            s.score(&with_mean(dec(mean)), &truth, &r, false);
+            s.score(&with_mean(dec(mean)), &truth, &r, || false);
         }
         // Losses: model 6, mean 2 (compared at 1): the mean serves.
         assert_eq!(s.serving(), Predictor::Blend);
@@ -408,11 +402,11 @@ mod tests {
         let d = with_mean(dec(&[1, 1, 0, 0])); // loss 2.5 a round against the model's 1.5
         let mut s = Switch::default();
         r.mean_edge = 0.5; // 2.5 * 0.5 = 1.25 < 1.5
-        s.score(&d, &truth, &r, false);
+        s.score(&d, &truth, &r, || false);
         assert_eq!(s.serving(), Predictor::Blend);
         let mut s = Switch::default();
         r.mean_edge = 0.3; // 2.5 * 0.7 = 1.75 > 1.5
-        s.score(&d, &truth, &r, false);
+        s.score(&d, &truth, &r, || false);
         assert_eq!(s.serving(), Predictor::Model);
     }
 }

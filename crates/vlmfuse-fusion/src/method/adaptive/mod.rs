@@ -36,7 +36,7 @@ pub use pool::{Pool, Scan};
 use super::Ctx;
 use crate::bank::Bank;
 use crate::config::FusionConfig;
-use crate::corr::{pair_index, smoothed_phi_f64, CorrWindow};
+use crate::corr::{pair_index, smoothed_phi_f64, smoothed_phi_signed, CorrWindow};
 use crate::engine::{FeedbackOutcome, Inference, LabelledRound, Round};
 use crate::reputation::{self, CreditMemory};
 use crate::signals::{clip, sigmoid, Signals};
@@ -70,6 +70,38 @@ struct GlobalSums {
 }
 
 impl GlobalSums {
+    /// The error co-occurrence counts of reporters `i != j` on label `k`, decayed by `scale`
+    /// (the guardrail's table).
+    fn errors(&self, n: usize, l: usize, i: usize, j: usize, k: usize, scale: f64) -> [f64; 4] {
+        // The phi coefficient is symmetric in (i, j): the cell order of the unordered pair does
+        // not matter.
+        self.pairs[pair_index(n, i, j) * l + k].map(|v| v * scale)
+    }
+
+    /// The largest dependence between two reporters' errors on the labelled entries: per pair,
+    /// the signed phi coefficient of their error co-occurrence per label, averaged over labels
+    /// weighted by their counts (docs/METHOD.md §3, `switch_dependence`).
+    fn max_error_dependence(&self, n: usize, l: usize, scale: f64) -> f64 {
+        let mut best = 0.0f64;
+        for i in 0..n {
+            for j in i + 1..n {
+                let (mut sum, mut mass) = (0.0, 0.0);
+                for k in 0..l {
+                    let c = self.errors(n, l, i, j, k, scale);
+                    let m: f64 = c.iter().sum();
+                    if m > 0.0 {
+                        sum += m * smoothed_phi_signed(c);
+                        mass += m;
+                    }
+                }
+                if mass > 0.0 {
+                    best = best.max(sum / mass);
+                }
+            }
+        }
+        best
+    }
+
     fn new(n: usize, l: usize, unlabelled: f64) -> Self {
         Self {
             base: 0,
@@ -897,35 +929,6 @@ impl Adaptive {
         }
     }
 
-    /// The largest dependence between two reporters' errors on the labelled rounds: per pair,
-    /// the phi coefficient of their error co-occurrence per label (cells smoothed by +0.5),
-    /// averaged over labels weighted by their counts.
-    fn max_error_dependence(&self, cx: &Ctx) -> f64 {
-        let (n, l) = (cx.n, cx.l);
-        let mut best = 0.0f64;
-        for i in 0..n {
-            for j in i + 1..n {
-                let base = pair_index(n, i, j) * l;
-                let (mut sum, mut mass) = (0.0, 0.0);
-                for k in 0..l {
-                    let c = self.global.pairs[base + k];
-                    let m: f64 = c.iter().sum();
-                    if m <= 0.0 {
-                        continue;
-                    }
-                    let (n00, n10, n01, n11) = (c[0] + 0.5, c[1] + 0.5, c[2] + 0.5, c[3] + 0.5);
-                    let den = ((n11 + n10) * (n01 + n00) * (n11 + n01) * (n10 + n00)).sqrt();
-                    sum += m * (n11 * n00 - n10 * n01) / den;
-                    mass += m;
-                }
-                if mass > 0.0 {
-                    best = best.max(sum / mass);
-                }
-            }
-        }
-        best
-    }
-
     /// The guardrail's correlations for a coalition: `rho[(x p + y) L + k]` for members `x != y`.
     fn rho(&self, cx: &Ctx, coalition: &[usize]) -> Vec<f64> {
         let cfg = cx.cfg;
@@ -946,10 +949,7 @@ impl Adaptive {
                             // `guardrail = "window"`: the paper method's.
                             Some(corr) => corr.rho(i, j, k, cfg.rho_max),
                             None => {
-                                // The phi coefficient is symmetric in (i, j): the cell order
-                                // of the unordered pair does not matter.
-                                let c = self.global.pairs[pair_index(n, i, j) * l + k]
-                                    .map(|v| v * scale);
+                                let c = self.global.errors(n, l, i, j, k, scale);
                                 let m: f64 = c.iter().sum();
                                 smoothed_phi_f64(c, cfg.rho_max) * m / (m + a.corr_shrink)
                             }
@@ -1485,9 +1485,12 @@ impl Adaptive {
                 };
                 // Two reporters erring together break the independence Dawid-Skene (which
                 // serves until `switch_min_rounds`) reads reliabilities from agreement under.
-                let early = a.switch_dependence > 0.0
-                    && self.switch.waiting(a.switch_min_rounds)
-                    && self.max_error_dependence(cx) > a.switch_dependence;
+                let scale = decay((cx.labelled - self.global.base) as f64, a.half_life);
+                let global = &self.global;
+                let early = || {
+                    a.switch_dependence > 0.0
+                        && global.max_error_dependence(cx.n, cx.l, scale) > a.switch_dependence
+                };
                 self.switch.score(
                     &[ds, model, vote, paper, mean],
                     &lr.truth,
